@@ -1,0 +1,21 @@
+"""jaxoptics: differentiable, JIT-compilable optics of a smooth interface, in JAX.
+
+Conventions (de Greve's): `i` points toward the surface, `eta1` is the medium the light comes
+from, `eta2` the medium it enters (complex `n + ik`, `k >= 0`, where allowed); angles in radians;
+vectors `(..., 3)`; dtype follows the inputs.
+"""
+
+from ._fresnel import FresnelAmplitudes as FresnelAmplitudes
+from ._fresnel import fresnel as fresnel
+from ._fresnel import fresnel_amplitudes as fresnel_amplitudes
+from ._fresnel import fresnel_rt as fresnel_rt
+from ._fresnel import fresnel_sp as fresnel_sp
+from ._fresnel import schlick as schlick
+from ._fresnel import schlick_tir as schlick_tir
+from ._refract import Refraction as Refraction
+from ._refract import brewster_angle as brewster_angle
+from ._refract import critical_angle as critical_angle
+from ._refract import reflect as reflect
+from ._refract import refract as refract
+
+__version__ = "0.1.0"

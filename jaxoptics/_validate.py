@@ -1,0 +1,95 @@
+"""Checks made once, at trace time, on what the user passes in.
+
+Everything here looks only at static information (shapes and dtypes), so it runs while JAX
+traces a program and raises a plain ``ValueError`` before any computation is compiled. Values
+cannot be checked inside ``jit``; the kernels document what out-of-domain values produce instead.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import jax.numpy as jnp
+
+
+def _dtype_of(x):
+    return jnp.result_type(x)
+
+
+def as_real(x, name: str):
+    """Return ``x`` as a JAX array with a floating dtype; integer or bool arrays raise.
+
+    Python ``int``/``float`` scalars are accepted (they are weakly typed and take the dtype of the
+    other arguments), so ``eta1=1`` works. Integer *arrays* are refused: silently computing in a
+    default float dtype would hide a units or dtype mistake.
+    """
+    if isinstance(x, bool) or (hasattr(x, "dtype") and np.dtype(x.dtype) == np.bool_):
+        raise ValueError(f"{name} must be a floating-point array or Python number, got a boolean")
+    if isinstance(x, (int, float)):
+        return x
+    if isinstance(x, complex) or (hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.complexfloating)):
+        raise ValueError(f"{name} must be real, got a complex value (dtype {_dtype_of(x)})")
+    dt = _dtype_of(x)
+    if not jnp.issubdtype(dt, jnp.floating):
+        raise ValueError(
+            f"{name} must have a floating dtype (float32 or float64), got dtype {dt}; "
+            f"convert it explicitly, e.g. {name}.astype(jnp.float32)"
+        )
+    return jnp.asarray(x)
+
+
+def as_index(x, name: str, *, allow_complex: bool):
+    """A refractive index: real floating, or complex ``n + ik`` where allowed."""
+    if isinstance(x, complex) or (hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.complexfloating)):
+        if not allow_complex:
+            raise ValueError(
+                f"{name} must be real here, got a complex index (dtype {_dtype_of(x)}); "
+                "complex indices are accepted for eta2 of fresnel, fresnel_sp, fresnel_rt, "
+                "fresnel_amplitudes and schlick"
+            )
+        return x if isinstance(x, complex) else jnp.asarray(x)
+    return as_real(x, name)
+
+
+def is_complex(*xs) -> bool:
+    return any(
+        isinstance(x, complex) or (hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.complexfloating))
+        for x in xs
+    )
+
+
+def vector(x, name: str):
+    """A direction: floating array of shape ``(..., 3)``."""
+    x = as_real(x, name)
+    shape = np.shape(x)
+    if len(shape) == 0 or shape[-1] != 3:
+        raise ValueError(f"{name} must have shape (..., 3) (a trailing axis of length 3), got shape {shape}")
+    return jnp.asarray(x)
+
+
+def broadcast_shapes(**named_shapes) -> tuple[int, ...]:
+    """``np.broadcast_shapes`` with an error that names every argument and its shape."""
+    try:
+        return np.broadcast_shapes(*named_shapes.values())
+    except ValueError:
+        listing = ", ".join(f"{k} {tuple(v)}" for k, v in named_shapes.items())
+        raise ValueError(f"shapes cannot be broadcast together: {listing}") from None
+
+
+def float_dtype(*xs):
+    """The floating dtype the computation runs in: that of the array inputs (the real part's dtype
+    for complex ones). Python scalars are weakly typed and follow; with no arrays at all, JAX's
+    default float dtype."""
+    parts = []
+    for x in xs:
+        if isinstance(x, (int, float, complex)) or getattr(x, "weak_type", False):
+            continue
+        dt = np.dtype(jnp.result_type(x))
+        parts.append(np.finfo(dt).dtype if np.issubdtype(dt, np.complexfloating) else dt)
+    if not parts:
+        return jnp.zeros(()).dtype
+    return np.result_type(*parts)
+
+
+def complex_dtype(float_dt):
+    """complex64 for float32 (and narrower), complex128 for float64."""
+    return np.dtype(np.complex128) if np.dtype(float_dt).itemsize >= 8 else np.dtype(np.complex64)
