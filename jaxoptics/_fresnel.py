@@ -126,15 +126,12 @@ def _prepare(cos_i, eta1, eta2, *, allow_complex: bool):
     cos_i = V.as_real(cos_i, "cos_i")
     eta1 = V.as_index(eta1, "eta1", allow_complex=False)
     eta2 = V.as_index(eta2, "eta2", allow_complex=allow_complex)
-    V.broadcast_shapes(cos_i=jnp.shape(cos_i), eta1=jnp.shape(eta1), eta2=jnp.shape(eta2))
+    shape = V.broadcast_shapes(cos_i=jnp.shape(cos_i), eta1=jnp.shape(eta1), eta2=jnp.shape(eta2))
     dt = V.float_dtype(cos_i, eta1, eta2)
-    cos_i = jnp.asarray(cos_i, dt)
-    eta1 = jnp.asarray(eta1, dt)
-    if V.is_complex(eta2):
-        eta2 = jnp.asarray(eta2, V.complex_dtype(dt))
-    else:
-        eta2 = jnp.asarray(eta2, dt)
-    return cos_i, eta1, eta2
+    cos_i = jnp.broadcast_to(jnp.asarray(cos_i, dt), shape)
+    eta1 = jnp.broadcast_to(jnp.asarray(eta1, dt), shape)
+    eta2 = jnp.asarray(eta2, V.complex_dtype(dt) if V.is_complex(eta2) else dt)
+    return cos_i, eta1, jnp.broadcast_to(eta2, shape)
 
 
 def _kt_squared(ki, eta1, eta2):

@@ -46,13 +46,14 @@ def _dot(a, b):
 
 
 def _vectors(i, n, *etas):
+    """Validate; return i, n broadcast to one shape (..., 3) and the batch shape (...)."""
     i = V.vector(i, "i")
     n = V.vector(n, "n")
     named = {"i": jnp.shape(i), "n": jnp.shape(n)}
     for k, e in etas:
         named[k] = jnp.shape(e) + (3,)  # indices broadcast against the leading (batch) axes
-    V.broadcast_shapes(**named)
-    return i, n
+    shape = V.broadcast_shapes(**named)
+    return jnp.broadcast_to(i, shape), jnp.broadcast_to(n, shape), shape[:-1]
 
 
 def _valid_vectors(i, n):
@@ -74,7 +75,7 @@ def reflect(i, n):
 
     **Edge cases:** a zero or non-finite `i` or `n` gives NaN. Grazing incidence returns `i`.
     """
-    i, n = _vectors(i, n)
+    i, n, _ = _vectors(i, n)
     d = _dot(i, n)[..., None]
     r = i - 2 * d * n
     return jnp.where(_valid_vectors(i, n)[..., None], r, jnp.nan)
@@ -129,11 +130,11 @@ def refract(i, n, eta1, eta2, *, method: str = "degreve", oliveira_c: float = 1.
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     eta1 = V.as_index(eta1, "eta1", allow_complex=False)
     eta2 = V.as_index(eta2, "eta2", allow_complex=False)
-    i, n = _vectors(i, n, ("eta1", eta1), ("eta2", eta2))
     dt = V.float_dtype(i, n, eta1, eta2)
+    i, n, batch = _vectors(i, n, ("eta1", eta1), ("eta2", eta2))
     i, n = i.astype(dt), n.astype(dt)
-    eta1 = jnp.asarray(eta1, dt)[..., None]
-    eta2 = jnp.asarray(eta2, dt)[..., None]
+    eta1 = jnp.broadcast_to(jnp.asarray(eta1, dt), batch)[..., None]
+    eta2 = jnp.broadcast_to(jnp.asarray(eta2, dt), batch)[..., None]
 
     d = _dot(i, n)[..., None]
     # Face the normal toward the incident side: cos_i = -(i . n_f) = |i . n| >= 0.
@@ -189,9 +190,10 @@ def critical_angle(eta1, eta2):
     """
     eta1 = V.as_index(eta1, "eta1", allow_complex=False)
     eta2 = V.as_index(eta2, "eta2", allow_complex=False)
-    V.broadcast_shapes(eta1=jnp.shape(eta1), eta2=jnp.shape(eta2))
+    shape = V.broadcast_shapes(eta1=jnp.shape(eta1), eta2=jnp.shape(eta2))
     dt = V.float_dtype(eta1, eta2)
-    eta1, eta2 = jnp.asarray(eta1, dt), jnp.asarray(eta2, dt)
+    eta1 = jnp.broadcast_to(jnp.asarray(eta1, dt), shape)
+    eta2 = jnp.broadcast_to(jnp.asarray(eta2, dt), shape)
     diff = (eta1 - eta2) * (eta1 + eta2)
     pos = diff > 0
     # Double where: sqrt'(0) is infinite at eta1 == eta2.
@@ -209,8 +211,9 @@ def brewster_angle(eta1, eta2):
     """
     eta1 = V.as_index(eta1, "eta1", allow_complex=False)
     eta2 = V.as_index(eta2, "eta2", allow_complex=False)
-    V.broadcast_shapes(eta1=jnp.shape(eta1), eta2=jnp.shape(eta2))
+    shape = V.broadcast_shapes(eta1=jnp.shape(eta1), eta2=jnp.shape(eta2))
     dt = V.float_dtype(eta1, eta2)
-    eta1, eta2 = jnp.asarray(eta1, dt), jnp.asarray(eta2, dt)
+    eta1 = jnp.broadcast_to(jnp.asarray(eta1, dt), shape)
+    eta2 = jnp.broadcast_to(jnp.asarray(eta2, dt), shape)
     valid = _positive_finite(eta1) & _positive_finite(eta2)
     return jnp.where(valid, jnp.arctan2(eta2, eta1), jnp.nan).astype(dt)

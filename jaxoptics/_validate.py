@@ -26,6 +26,8 @@ def as_real(x, name: str):
         raise ValueError(f"{name} must be a floating-point array or Python number, got a boolean")
     if isinstance(x, (int, float)):
         return x
+    if not hasattr(x, "dtype"):  # lists, tuples: look at what NumPy makes of them
+        x = np.asarray(x)
     if isinstance(x, complex) or (hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.complexfloating)):
         raise ValueError(f"{name} must be real, got a complex value (dtype {_dtype_of(x)})")
     dt = _dtype_of(x)

@@ -82,13 +82,14 @@ def fresnel_specials(args, j, lo, hi):
     return [p for p in pts if mp.im(p) == 0 and lo <= mp.re(p) <= hi]
 
 
-def backward_bound(f, args, dtype, ulps=2, specials=None):
+def backward_bound(f, args, dtype, ulps=2, specials=None, nonneg=()):
     """Sum over inputs of the largest change of f when that input moves by up to +-ulps ulps.
 
     `f` maps mp numbers to an mp number (or a list of them, compared by max-abs; complex values
     by modulus). This is the error a backward-stable algorithm may make: what rounding the inputs
     by `ulps` ulps causes. The sup over each interval is taken at its ends and at the points
-    `specials(args, j, lo, hi)` returns (cusps inside the interval).
+    `specials(args, j, lo, hi)` returns (cusps inside the interval). Inputs listed in `nonneg`
+    (indices, the imaginary part of an index) are not moved below zero.
     """
 
     def dist(a, b):
@@ -111,7 +112,7 @@ def backward_bound(f, args, dtype, ulps=2, specials=None):
         for value in candidates:
             moved = [mpf(x) for x in args]
             moved[j] = value
-            if j > 0 and moved[j] <= 0:  # indices stay positive
+            if j in nonneg and moved[j] < 0:
                 continue
             worst = max(worst, dist(f(*moved), base))
         total += worst
