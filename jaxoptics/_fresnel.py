@@ -168,8 +168,10 @@ class _Terms(NamedTuple):
     tir: jnp.ndarray  # total internal reflection (always false on the complex path)
     m: jnp.ndarray  # k_i^2 - eta1^2 = -eta1^2 sin^2
     ok: jnp.ndarray  # an interface, outside TIR: false at grazing incidence with eta1 == eta2
-    inv_s: jnp.ndarray  # 1 / (k_i + k_t), 1 where not ok
-    inv_p: jnp.ndarray  # 1 / (eta2**2 k_i + eta1**2 k_t), 1 where not ok
+    den_s: jnp.ndarray  # k_i + k_t, 1 where not ok
+    den_p: jnp.ndarray  # eta2**2 k_i + eta1**2 k_t, 1 where not ok
+    inv_s: jnp.ndarray  # 1 / den_s
+    inv_p: jnp.ndarray  # 1 / den_p
     valid: jnp.ndarray
 
 
@@ -207,9 +209,9 @@ def _terms(cos_i, eta1, eta2) -> _Terms:
     # tiny nonzero k_i + k_t can have a square of exactly 0. The divisors themselves are replaced
     # (not only the quotients) so no NaN leaks into gradients.
     ok = (_abs2(den_s) > 0) & (_abs2(den_p) > 0) & ~tir
-    inv_s = 1 / jnp.where(ok, den_s, 1)
-    inv_p = 1 / jnp.where(ok, den_p, 1)
-    return _Terms(eta1, eta2, c, ki, kt, diff, tir, m, ok, inv_s, inv_p, valid)
+    den_s = jnp.where(ok, den_s, 1)
+    den_p = jnp.where(ok, den_p, 1)
+    return _Terms(eta1, eta2, c, ki, kt, diff, tir, m, ok, den_s, den_p, 1 / den_s, 1 / den_p, valid)
 
 
 def _r_amplitudes(t: _Terms):
@@ -244,8 +246,10 @@ def _r_amplitudes(t: _Terms):
 
 
 def _t_amplitudes(t: _Terms, eta2):
-    t_s = jnp.where(t.ok, 2 * t.ki * t.inv_s, 1)
-    t_p = jnp.where(t.ok, 2 * t.e1 * eta2 * t.ki * t.inv_p, 1)
+    # Divisions, not products with the reciprocals: with eta1 == eta2 the numerators equal the
+    # denominators exactly, and x / x is 1 where x * (1 / x) need not be.
+    t_s = jnp.where(t.ok, 2 * t.ki / t.den_s, 1)
+    t_p = jnp.where(t.ok, 2 * (t.e1 * eta2 * t.ki) / t.den_p, 1)
     return t_s, t_p
 
 

@@ -153,8 +153,10 @@ def refract(i, n, eta1, eta2, *, method: str = "degreve", oliveira_c: float = 1.
         kt = jnp.where(pos, jnp.sqrt(jnp.where(pos, q, 1)), 0)
         den = ki + kt
         ok = den > 0  # false only at grazing incidence with eta1 == eta2 (0/0): t = i there
-        coef = jnp.where(ok, -diff / jnp.where(ok, den, 1), 0)
-        t = (eta1 * i + coef * nf) / eta2
+        # r cos_i - cos_t = (eta1^2 - eta2^2) / (eta2 (k_i + k_t)): no cancellation, exactly 0 for
+        # eta1 == eta2, where r = eta1 / eta2 is exactly 1, so t == i bit for bit.
+        coef = jnp.where(ok, -diff / (eta2 * jnp.where(ok, den, 1)), 0)
+        t = (eta1 / eta2) * i + coef * nf
     elif method in ("heckbert", "bec"):
         r = eta1 / eta2
         if method == "heckbert":
