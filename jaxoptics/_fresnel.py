@@ -387,7 +387,10 @@ def schlick(cos_i, eta1, eta2):
     medium) the error against `fresnel` stays below about 0.01 for glass-like indices, but it grows
     with the contrast. It knows nothing of TIR: for `eta1 > eta2` it is badly wrong past the
     critical angle (use `schlick_tir`). The power is computed by multiplications (4 multiplies),
-    not `pow`. NaN for invalid elements, as for `fresnel`.
+    not `pow`.
+
+    **Edge cases:** `R = 1` at grazing incidence, `R0` at normal incidence, `0` everywhere when
+    `eta1 == eta2`; NaN for a non-finite `cos_i` or an index that is not finite and positive.
 
     Reference: Schlick (1994); Real-Time Rendering, 4th ed., eq. 9.16.
     """

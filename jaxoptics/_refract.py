@@ -207,9 +207,12 @@ def critical_angle(eta1, eta2):
 def brewster_angle(eta1, eta2):
     r"""Brewster's angle `atan(eta2 / eta1)` in radians, where `R_p = 0`.
 
-    Exists for all positive real indices (for either direction of travel). Non-positive or
-    non-finite indices give NaN; complex indices (where there is only a pseudo-Brewster minimum)
-    are refused with a `ValueError`.
+    Computed as `atan2(eta2, eta1)`. Exists for all positive real indices, for either direction
+    of travel (for `eta1 > eta2` it lies below the critical angle).
+
+    **Edge cases:** `pi / 4` when `eta1 == eta2` (where `R_p` is 0 at every angle anyway);
+    non-positive or non-finite indices give NaN; complex indices (where there is only a
+    pseudo-Brewster minimum) are refused with a `ValueError`.
     """
     eta1 = V.as_index(eta1, "eta1", allow_complex=False)
     eta2 = V.as_index(eta2, "eta2", allow_complex=False)

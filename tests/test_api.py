@@ -1,0 +1,146 @@
+"""API conventions: names, keyword-only options, composition with JAX transforms, dtype, shapes."""
+
+import inspect
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxoptics as jo
+
+PUBLIC_KERNELS = ["reflect", "refract", "fresnel", "fresnel_sp", "fresnel_rt", "fresnel_amplitudes",
+                  "schlick", "schlick_tir", "critical_angle", "brewster_angle"]
+
+
+def test_public_names():
+    for name in PUBLIC_KERNELS + ["FresnelAmplitudes", "Refraction"]:
+        assert hasattr(jo, name), name
+    for name in dir(jo):
+        obj = getattr(jo, name)
+        if callable(obj) and not name.startswith("_"):
+            assert obj.__doc__, f"{name} has no docstring"
+
+
+def test_optional_arguments_are_keyword_only():
+    """Every parameter with a default must be keyword-only (dm-pix's api_test rule)."""
+    for name in dir(jo):
+        obj = getattr(jo, name)
+        if not inspect.isfunction(obj) or name.startswith("_"):
+            continue
+        for p in inspect.signature(obj).parameters.values():
+            if p.default is not inspect.Parameter.empty:
+                assert p.kind == inspect.Parameter.KEYWORD_ONLY, f"{name}({p.name}=...) can be passed positionally"
+
+
+def test_kernel_docstrings_state_conventions_and_edge_cases():
+    for name in PUBLIC_KERNELS:
+        doc = getattr(jo, name).__doc__
+        assert "Edge cases" in doc, name
+
+
+def _ray_batch(dtype, shape=(7,)):
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=shape + (3,))
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    i = rng.normal(size=shape + (3,))
+    i /= np.linalg.norm(i, axis=-1, keepdims=True)
+    return i.astype(dtype), n.astype(dtype)
+
+
+KERNEL_CALLS = {
+    "reflect": lambda i, n, c, a, b: jo.reflect(i, n),
+    "refract": lambda i, n, c, a, b: jo.refract(i, n, a, b),
+    "refract_bec": lambda i, n, c, a, b: jo.refract(i, n, a, b, method="bec"),
+    "refract_oliveira": lambda i, n, c, a, b: jo.refract(i, n, a, b, method="oliveira", oliveira_c=0.9),
+    "refract_heckbert": lambda i, n, c, a, b: jo.refract(i, n, a, b, method="heckbert"),
+    "fresnel": lambda i, n, c, a, b: jo.fresnel(c, a, b),
+    "fresnel_sp": lambda i, n, c, a, b: jo.fresnel_sp(c, a, b),
+    "fresnel_rt": lambda i, n, c, a, b: jo.fresnel_rt(c, a, b),
+    "fresnel_amplitudes": lambda i, n, c, a, b: jo.fresnel_amplitudes(c, a, b),
+    "fresnel_complex": lambda i, n, c, a, b: jo.fresnel(c, a, jax.lax.complex(b, 0.5 * b)),
+    "schlick": lambda i, n, c, a, b: jo.schlick(c, a, b),
+    "schlick_tir": lambda i, n, c, a, b: jo.schlick_tir(c, a, b),
+    "critical_angle": lambda i, n, c, a, b: jo.critical_angle(a, b),
+    "brewster_angle": lambda i, n, c, a, b: jo.brewster_angle(a, b),
+}
+
+
+def _inputs(dtype):
+    i, n = _ray_batch(dtype)
+    c = np.abs(np.sum(i * n, -1)).astype(dtype)
+    a = np.linspace(1.0, 2.0, 7).astype(dtype)
+    b = np.linspace(1.6, 1.1, 7).astype(dtype)
+    return tuple(jnp.asarray(x) for x in (i, n, c, a, b))
+
+
+def _real_dtype(x):
+    return jnp.finfo(x.dtype).dtype if jnp.iscomplexobj(x) else x.dtype
+
+
+@pytest.mark.parametrize("name", list(KERNEL_CALLS))
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_jit_vmap_match_eager_and_keep_dtype(name, dtype):
+    f = KERNEL_CALLS[name]
+    args = _inputs(dtype)
+    eager = f(*args)
+    jitted = jax.jit(f)(*args)
+    mapped = jax.vmap(f)(*args)
+    for e, j, m in zip(jax.tree_util.tree_leaves(eager), jax.tree_util.tree_leaves(jitted), jax.tree_util.tree_leaves(mapped)):
+        if e.dtype != bool:
+            assert _real_dtype(e) == dtype, (name, e.dtype)
+        np.testing.assert_allclose(np.asarray(j), np.asarray(e), rtol=4 * np.finfo(dtype).eps, atol=4 * np.finfo(dtype).eps)
+        np.testing.assert_allclose(np.asarray(m), np.asarray(e), rtol=4 * np.finfo(dtype).eps, atol=4 * np.finfo(dtype).eps)
+
+
+@pytest.mark.parametrize("name", list(KERNEL_CALLS))
+def test_grad_jvp_vjp_compose(name):
+    f = KERNEL_CALLS[name]
+    args = _inputs(np.float64)
+
+    def scalar(*a):
+        leaves = [x for x in jax.tree_util.tree_leaves(f(*a)) if x.dtype != bool]
+        return sum(jnp.sum(jnp.abs(x) ** 2) if jnp.iscomplexobj(x) else jnp.sum(x) for x in leaves)
+
+    g = jax.grad(scalar, argnums=(0, 1, 2, 3, 4))(*args)
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in g)
+    tangents = tuple(jnp.ones_like(x) for x in args)
+    _, jv = jax.jvp(scalar, args, tangents)
+    _, pull = jax.vjp(scalar, *args)
+    vj = pull(jnp.float64(1.0))
+    # <grad, v> from reverse mode equals the forward-mode directional derivative
+    np.testing.assert_allclose(float(jv), float(sum(jnp.sum(a) for a in vj)), rtol=1e-10)
+
+
+def test_broadcasting_over_leading_axes():
+    i, n = _ray_batch(np.float64, shape=(4, 5))
+    e2 = jnp.linspace(1.1, 1.9, 5)  # broadcasts against the last batch axis
+    t, tir = jo.refract(i, n[0, 0], 1.0, e2)
+    assert t.shape == (4, 5, 3) and tir.shape == (4, 5)
+    for a in range(4):
+        for b in range(5):
+            tt, _ = jo.refract(i[a, b], n[0, 0], 1.0, e2[b])
+            np.testing.assert_array_equal(np.asarray(tt), np.asarray(t[a, b]))
+    R = jo.fresnel(jnp.linspace(0, 1, 6)[:, None], 1.0, jnp.array([1.2, 1.5]))
+    assert R.shape == (6, 2)
+
+
+def test_results_are_named_and_unpack():
+    t, tir = jo.refract(jnp.array([0.6, 0.0, -0.8]), jnp.array([0.0, 0.0, 1.0]), 1.0, 1.5)
+    res = jo.refract(jnp.array([0.6, 0.0, -0.8]), jnp.array([0.0, 0.0, 1.0]), 1.0, 1.5)
+    assert isinstance(res, jo.Refraction) and res.t is not None and res.tir.dtype == bool
+    a = jo.fresnel_amplitudes(0.5, 1.0, 1.5)
+    r_s, r_p, t_s, t_p = a
+    assert isinstance(a, jo.FresnelAmplitudes)
+    np.testing.assert_allclose(float(a.R), float(jo.fresnel(0.5, 1.0, 1.5)), rtol=1e-14)
+    R_s, R_p = jo.fresnel_sp(0.5, 1.0, 1.5)
+    np.testing.assert_allclose(float(a.R_s), float(R_s), rtol=1e-14)
+    np.testing.assert_allclose(float(a.R_p), float(R_p), rtol=1e-14)
+
+
+def test_float32_stays_float32_with_python_scalars():
+    c = jnp.linspace(0, 1, 5, dtype=jnp.float32)
+    assert jo.fresnel(c, 1.0, 1.5).dtype == jnp.float32
+    assert jo.fresnel_amplitudes(c, 1, 1.5).r_s.dtype == jnp.complex64
+    assert jo.fresnel(c, 1.0, 0.2 + 3j).dtype == jnp.float32
+    assert jo.refract(jnp.ones((2, 3), jnp.float32), jnp.ones(3, jnp.float32), 1.0, 1.5).t.dtype == jnp.float32
