@@ -19,3 +19,11 @@ from ._refract import reflect as reflect
 from ._refract import refract as refract
 
 __version__ = "0.1.0"
+from ._fit import FitResult as FitResult
+from ._fit import fit_eta as fit_eta
+from ._fit import synthetic_reflectance as synthetic_reflectance
+from ._materials import MATERIALS as MATERIALS
+from ._materials import Material as Material
+from ._materials import cauchy as cauchy
+from ._materials import material_index as material_index
+from ._materials import sellmeier as sellmeier
