@@ -27,3 +27,9 @@ from ._materials import Material as Material
 from ._materials import cauchy as cauchy
 from ._materials import material_index as material_index
 from ._materials import sellmeier as sellmeier
+from ._dispersion_fit import DispersionFit as DispersionFit
+from ._dispersion_fit import fit_dispersion as fit_dispersion
+from ._data import Curve as Curve
+from ._data import ReflectanceData as ReflectanceData
+from ._data import example_path as example_path
+from ._data import load_reflectance as load_reflectance

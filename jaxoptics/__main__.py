@@ -3,12 +3,15 @@
 Commands:
   demo    print R_s, R_p, R and T across angles for air -> glass and glass -> air, with the
           critical and Brewster angles (a quick check that the install works).
+  fit     fit the refractive index to reflectance-versus-angle data in a CSV file
+          (`fit --example` uses the bundled N-BK7 measurement).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 
 def _demo(args) -> int:
@@ -38,12 +41,118 @@ def _demo(args) -> int:
     return 0
 
 
+def _fit(args) -> int:
+    import jax
+    import numpy as np
+
+    jax.config.update("jax_enable_x64", True)
+    import jaxoptics as jo
+
+    if args.example == bool(args.file):
+        print("fit: give either a CSV file or --example", file=sys.stderr)
+        return 2
+    path = jo.example_path() if args.example else args.file
+    try:
+        data = jo.load_reflectance(path)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    curves = data.curves(default_polarization=args.polarization or "unpolarized")
+    if args.polarization and data.polarization is not None:
+        curves = [c for c in curves if c.polarization == args.polarization]
+        if not curves:
+            print(f"error: {path} has no rows with polarization {args.polarization!r}", file=sys.stderr)
+            return 2
+    print(f"jaxoptics fit: {path}")
+    print(f"{data.R.size} points in {len(curves)} curve(s); incident medium eta1 = {args.eta1:g}; "
+          f"{'absorbing (n + ik)' if args.absorbing else 'real index'}; "
+          f"errors {'from the sigma column' if data.sigma is not None else 'scaled by the residual scatter'}")
+    head = f"{'wavelength_um':>13} {'pol':>11} {'points':>6} {'eta':>24} {'stderr':>22} {'converged':>9} {'rms resid':>10} {'chi2/dof':>9} {'steps':>5}"
+    print(head)
+    fits = []
+    for c in curves:
+        try:
+            r = jo.fit_eta(c.theta, c.R, eta1=args.eta1, polarization=c.polarization, sigma=c.sigma,
+                           absorbing=args.absorbing)
+        except ValueError as e:
+            print(f"error: {path}, curve at lines {c.lines[0]}-{c.lines[-1]}: {e}", file=sys.stderr)
+            return 2
+        fits.append((c, r))
+        lam = "-" if c.wavelength_um is None else f"{c.wavelength_um:g}"
+        eta = complex(r.eta) if args.absorbing else float(r.eta)
+        se = complex(r.stderr) if args.absorbing else float(r.stderr)
+        eta_s = f"{eta.real:.6f}{eta.imag:+.6f}i" if args.absorbing else f"{eta:.7f}"
+        se_s = f"{se.real:.2g}, {se.imag:.2g}i" if args.absorbing else f"{se:.2g}"
+        print(f"{lam:>13} {c.polarization:>11} {c.R.size:>6} {eta_s:>24} {se_s:>22} {('yes' if bool(r.converged) else 'NO'):>9} "
+              f"{float(r.residual_rms):>10.3g} {float(r.chi2_reduced):>9.3g} {int(r.num_steps):>5}")
+    if not args.absorbing:
+        by_lam = {}
+        for c, r in fits:
+            by_lam.setdefault(c.wavelength_um, []).append(r)
+        for lam, rs in by_lam.items():
+            if len(rs) > 1:
+                wts = np.array([1 / float(r.stderr) ** 2 for r in rs])
+                est = np.sum(wts * np.array([float(r.eta) for r in rs])) / np.sum(wts)
+                where = "" if lam is None else f" at {lam:g} um"
+                print(f"combined{where}: eta = {est:.7f} +- {1 / np.sqrt(np.sum(wts)):.2g} "
+                      f"(inverse-variance mean of {len(rs)} curves)")
+    if any(not bool(r.converged) for _, r in fits):
+        print("warning: some fits did not converge (see the converged column)", file=sys.stderr)
+    if args.plot:
+        _plot_fits(fits, args, str(path))
+        print(f"plot saved to {args.plot}")
+    return 0
+
+
+def _plot_fits(fits, args, title):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    import jaxoptics as jo
+
+    fig, (ax, axr) = plt.subplots(2, 1, figsize=(7.5, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1.3]})
+    for k, (c, r) in enumerate(fits):
+        color = f"C{k}"
+        deg = np.rad2deg(c.theta)
+        fine = np.linspace(0, np.pi / 2, 400)
+        model = np.asarray(jo.synthetic_reflectance(None, r.eta, fine, eta1=args.eta1, polarization=c.polarization))
+        fit_at = np.asarray(jo.synthetic_reflectance(None, r.eta, c.theta, eta1=args.eta1, polarization=c.polarization))
+        lam = "" if c.wavelength_um is None else f", {c.wavelength_um:g} um"
+        eta = complex(r.eta) if args.absorbing else float(r.eta)
+        lbl = f"{c.polarization}{lam}: eta = {eta:.5g}"
+        ax.errorbar(deg, c.R, yerr=c.sigma, fmt="o", ms=3.5, color=color, label=f"data ({c.polarization}{lam})")
+        ax.plot(np.rad2deg(fine), model, "-", color=color, lw=1.2, label=f"fit {lbl}")
+        axr.errorbar(deg, c.R - fit_at, yerr=c.sigma, fmt="o", ms=3, color=color)
+    axr.axhline(0, color="k", lw=0.8)
+    ax.set_ylabel("reflectance R")
+    axr.set_ylabel("data - fit")
+    axr.set_xlabel("angle of incidence (degrees)")
+    ax.set_title(f"index fit: {Path(title).name}")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    axr.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(args.plot, dpi=120)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m jaxoptics", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("demo", help="Fresnel table for air/glass in both directions")
     p.add_argument("--eta", type=float, default=1.5, help="index of the glass (default 1.5)")
     p.set_defaults(func=_demo)
+    p = sub.add_parser("fit", help="fit the index to reflectance-vs-angle data in a CSV file")
+    p.add_argument("file", nargs="?", help="CSV with columns angle_deg, R [, polarization, wavelength_um, sigma]")
+    p.add_argument("--example", action="store_true", help="use the bundled N-BK7 example measurement")
+    p.add_argument("--polarization", choices=["s", "p", "unpolarized"],
+                   help="polarization of files without a polarization column; with one, fit only these rows")
+    p.add_argument("--eta1", type=float, default=1.0, help="index of the incident medium (default 1.0)")
+    p.add_argument("--absorbing", action="store_true", help="fit a complex index n + ik")
+    p.add_argument("--plot", metavar="OUT.png", help="save data, fit and residuals as a figure")
+    p.set_defaults(func=_fit)
     args = parser.parse_args(argv)
     return args.func(args)
 

@@ -62,12 +62,15 @@ class FitResult(eqx.Module):
     - `eta`: fitted index, `(...)`; real, or complex `n + ik` on the physical branch `n > 0, k >= 0`
       for `absorbing=True`.
     - `stderr`: standard error of `eta`, `(...)`: real; for complex fits, complex with the standard
-      error of `n` as real part and that of `k` as imaginary part (see `corr_nk`).
+      error of `n` as real part and that of `k` as imaginary part (see `corr_nk`). It is `inf` for a
+      parameter the data do not constrain to first order (e.g. `k` fitted as exactly 0: `R` depends
+      on `k` only quadratically there).
     - `covariance`: `(..., p, p)` covariance of the parameters (`eta`, or `(n, k)`), from the
-      Jacobian at the solution: `(J^T J)^-1` with residuals scaled by `1/sigma` when `sigma` is given,
+      Jacobian at the solution: `(J^T J)^-1` with residuals scaled by `1/sigma` when `sigma` is given
+      (times `max(1, chi2_reduced)`, so data inconsistent with their `sigma` widen the errors),
       times the reduced chi-square `RSS / (m - p)` when it is not.
-    - `converged`: `(...)` bool: the solver reported success and the estimate and its error are
-      finite.
+    - `converged`: `(...)` bool: the solver reported success, the estimate is finite and its error
+      is not NaN.
     - `residual_rms`: `(...)` root mean square of the unweighted residuals `R_model - R`.
     - `chi2_reduced`: `(...)` `sum(((R_model - R) / sigma)^2) / (m - p)` (with `sigma = 1` when
       not given); about 1 for a good model with correct `sigma`.
@@ -90,7 +93,10 @@ class FitResult(eqx.Module):
 
 
 def _tol(dtype):
-    return max(1e-13, 100 * float(jnp.finfo(dtype).eps))
+    # Step and loss tolerances of the solvers. Much tighter than 1e-10 in float64 and the steps
+    # start to chase rounding noise (with sigma-weighted residuals of order 1, Gauss-Newton then
+    # stalls on a few percent of noisy curves); 1e-10 still recovers noise-free indices to 1e-9.
+    return max(1e-10, 100 * float(jnp.finfo(dtype).eps))
 
 
 def _default_solver(dtype, absorbing):
@@ -157,11 +163,38 @@ def _params_to_eta(y, absorbing):
 
 
 def _covariance(J, r, sigma_given):
-    """(J^T J)^-1, scaled by the reduced chi-square when no sigma was given; and chi2_reduced."""
+    """(J^T J)^-1 and the reduced chi-square.
+
+    Without sigma the covariance is scaled by the reduced chi-square (the residual scatter
+    estimates the noise). With sigma it is scaled by max(1, chi2_reduced), the Particle Data
+    Group's scale factor: data that scatter more than their stated sigma (or that the model does
+    not describe) widen the errors instead of leaving a confident wrong answer.
+    """
     m, p = J.shape
     chi2 = jnp.sum(r * r) / (m - p)
-    cov = jnp.linalg.inv(J.T @ J)
-    return (cov if sigma_given else cov * chi2), chi2
+    cov = _inverse_with_null_space(J.T @ J)
+    return cov * (jnp.maximum(chi2, 1) if sigma_given else chi2), chi2
+
+
+def _inverse_with_null_space(A):
+    """Inverse of a symmetric positive semi-definite normal matrix, honest about what it cannot see.
+
+    Directions the data do not constrain to first order (an eigenvalue below p * eps of the
+    largest, after scaling to unit diagonal) get infinite variance: every parameter with a
+    component along them has variance inf, the others the pseudo-inverse's finite value. Example:
+    k exactly 0 in a complex fit, where R depends on k only quadratically, so d R / d k = 0.
+    """
+    d = jnp.sqrt(jnp.diagonal(A))
+    d_ok = d > 0
+    d = jnp.where(d_ok, d, 1)
+    S = A / (d[:, None] * d[None, :])
+    lam, V = jnp.linalg.eigh(S)
+    good = lam > lam[-1] * A.shape[0] * jnp.finfo(A.dtype).eps
+    inv_lam = jnp.where(good, 1 / jnp.where(good, lam, 1), 0)
+    cov = (V * inv_lam[None, :]) @ V.T / (d[:, None] * d[None, :])
+    unseen = (jnp.sum(jnp.where(good[None, :], 0, V * V), axis=1) > 1e-12) | ~d_ok
+    diag = jnp.where(unseen, jnp.inf, jnp.diagonal(cov))
+    return cov.at[jnp.diag_indices(A.shape[0])].set(diag)
 
 
 def _fit_one(theta, R, w, eta1, y0, *, polarization, absorbing, solver, max_steps, sigma_given):
@@ -185,7 +218,7 @@ def _fit_one(theta, R, w, eta1, y0, *, polarization, absorbing, solver, max_step
     else:
         eta, stderr = y[0], se[0]
     rms = jnp.sqrt(jnp.mean((r / w) ** 2))
-    ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(se))
+    ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(y)) & ~jnp.any(jnp.isnan(se))
     return FitResult(eta, stderr, cov, ok, rms, chi2, sol.stats["num_steps"])
 
 
@@ -232,12 +265,12 @@ def check_curves(theta, R, sigma, *, n_params: int, where: str = "") -> None:
         raise ValueError(f"theta[{k}] = {th[k]} rad ({np.rad2deg(th[k]):.4g} deg) is outside [0, pi/2]{at}")
     bad = np.argwhere(~np.isfinite(Rv))
     if bad.size:
-        idx = tuple(bad[0])
+        idx = tuple(int(i) for i in bad[0])
         raise ValueError(f"R{list(idx)} = {Rv[idx]} is not finite{at}")
     flat = Rv.reshape(-1, th.shape[0])
     const = np.flatnonzero(np.ptp(flat, axis=-1) == 0)
     if const.size:
-        k = np.unravel_index(const[0], Rv.shape[:-1]) if Rv.ndim > 1 else ()
+        k = tuple(int(i) for i in np.unravel_index(const[0], Rv.shape[:-1])) if Rv.ndim > 1 else ()
         raise ValueError(
             f"curve {list(k)}{at} has the same reflectance {flat[const[0], 0]} at every angle: "
             "a constant curve carries no information on the index"
@@ -245,8 +278,8 @@ def check_curves(theta, R, sigma, *, n_params: int, where: str = "") -> None:
     if sigma is not None:
         sv = np.asarray(sigma, dtype=np.float64)
         if not np.all(np.isfinite(sv) & (sv > 0)):
-            k = np.argwhere(~(np.isfinite(sv) & (sv > 0)))[0]
-            raise ValueError(f"sigma{list(k)} = {sv[tuple(k)]} must be finite and positive{at}")
+            k = tuple(int(i) for i in np.argwhere(~(np.isfinite(sv) & (sv > 0)))[0])
+            raise ValueError(f"sigma{list(k)} = {sv[k]} must be finite and positive{at}")
 
 
 def _warn_if_x64_off(*xs):

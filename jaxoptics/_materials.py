@@ -18,20 +18,20 @@ def cauchy(wavelength_um, coefficients):
     **Arguments:**
 
     - `wavelength_um`: wavelengths in micrometres, any shape.
-    - `coefficients`: `(A, B)` or `(A, B, C, ...)`; a sequence or an array whose *last* axis holds
-      the coefficients (so batches of coefficient sets broadcast against `wavelength_um[..., None]`
-      style inputs).
+    - `coefficients`: `(A, B)` or `(A, B, C, ...)`, a one-dimensional sequence or array.
 
-    **Returns:** `n`, the broadcast of `wavelength_um` with the coefficients' leading axes.
+    **Returns:** `n`, shaped like `wavelength_um`.
 
     **Edge cases:** a non-positive wavelength gives inf or NaN (the law is singular at 0).
     """
     lam = V.as_real(wavelength_um, "wavelength_um")
     coef = jnp.asarray(coefficients)
+    if coef.ndim != 1 or coef.shape[0] < 1:
+        raise ValueError(f"coefficients must be one-dimensional, (A, B, ...), got shape {coef.shape}")
     inv2 = 1 / (jnp.asarray(lam) ** 2)
-    n = coef[..., -1]
-    for k in range(coef.shape[-1] - 2, -1, -1):  # Horner in 1/lambda^2
-        n = coef[..., k] + inv2 * n
+    n = jnp.broadcast_to(coef[-1], inv2.shape)
+    for k in range(coef.shape[0] - 2, -1, -1):  # Horner in 1/lambda^2
+        n = coef[k] + inv2 * n
     return n
 
 
@@ -54,8 +54,11 @@ def sellmeier(wavelength_um, B, C):
     lam = jnp.asarray(V.as_real(wavelength_um, "wavelength_um"))
     B = jnp.asarray(B)
     C = jnp.asarray(C)
+    if B.ndim != 1 or B.shape != C.shape:
+        raise ValueError(f"B and C must be one-dimensional and of equal length, got shapes {B.shape} and {C.shape}")
     l2 = (lam * lam)[..., None]
-    n2 = 1 + jnp.sum(B * l2 / (l2 - C), axis=-1)
+    lead = (1,) * lam.ndim
+    n2 = 1 + jnp.sum(B.reshape(lead + B.shape) * l2 / (l2 - C.reshape(lead + C.shape)), axis=-1)
     return jnp.sqrt(n2)
 
 

@@ -1,0 +1,166 @@
+"""Fit a dispersion law n(lambda) to reflectance-versus-angle curves at several wavelengths."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from . import _validate as V
+from ._fit import POLARIZATIONS, _is_concrete, _reflectance, _tol, _warn_if_x64_off, check_curves, fit_eta
+from ._materials import cauchy, sellmeier
+
+MODELS = ("cauchy", "sellmeier")
+# Starting poles for Sellmeier fits (micrometres squared): typical of optical glasses and silica,
+# two in the ultraviolet and one in the infrared. The B terms then follow by linear least squares.
+_SELLMEIER_POLES = {1: (0.01,), 2: (0.01, 100.0), 3: (0.0047, 0.0135, 97.9)}
+
+
+def _index(model, p, lam, terms):
+    if model == "cauchy":
+        return cauchy(lam, p)
+    return sellmeier(lam, p[:terms], p[terms:])
+
+
+class DispersionFit(eqx.Module):
+    """Result of `fit_dispersion`.
+
+    **Fields:** `model` ("cauchy" or "sellmeier"), `terms`; `coefficients` (`(A, B, C, ...)` for
+    Cauchy, `(B_1..B_k, C_1..C_k)` for Sellmeier, wavelengths in micrometres); `covariance` and
+    `stderr` of the coefficients; `converged`; `residual_rms` of the reflectance; `chi2_reduced`;
+    `num_steps`; `condition_number` of `J^T J` (large for Sellmeier fits, whose coefficients are
+    strongly correlated: judge the fit by `index(wavelength_um)` and its error, not by single
+    coefficients).
+    """
+
+    model: str = eqx.field(static=True)
+    terms: int = eqx.field(static=True)
+    coefficients: jax.Array
+    covariance: jax.Array
+    stderr: jax.Array
+    converged: jax.Array
+    residual_rms: jax.Array
+    chi2_reduced: jax.Array
+    num_steps: jax.Array
+    condition_number: jax.Array
+
+    def index(self, wavelength_um):
+        """`(n, stderr)` at `wavelength_um`: the fitted law and its standard error, propagated from
+        the coefficients' covariance to first order (the delta method)."""
+        lam = jnp.asarray(wavelength_um, self.coefficients.dtype)
+        f = lambda p, l: _index(self.model, p, l, self.terms)
+        n = f(self.coefficients, lam)
+        g = jax.vmap(jax.grad(f), in_axes=(None, 0))(self.coefficients, lam.reshape(-1))
+        var = jnp.einsum("ip,pq,iq->i", g, self.covariance, g).reshape(lam.shape)
+        return n, jnp.sqrt(jnp.maximum(var, 0))
+
+
+def _initial(model, terms, lam, n):
+    """Linear least squares for the coefficients, given per-wavelength indices."""
+    lam, n = np.asarray(lam, np.float64), np.asarray(n, np.float64)
+    if model == "cauchy":
+        A = np.stack([lam ** (-2 * k) for k in range(terms)], 1)
+        return np.linalg.lstsq(A, n, rcond=None)[0]
+    C = np.asarray(_SELLMEIER_POLES[terms])
+    l2 = lam[:, None] ** 2
+    B = np.linalg.lstsq(l2 / (l2 - C), n**2 - 1, rcond=None)[0]
+    return np.concatenate([B, C])
+
+
+@eqx.filter_jit
+def _solve(theta, lam, R, w, eta1, p0, *, model, terms, polarization, solver, max_steps, sigma_given):
+    cos_i = jnp.cos(theta)
+
+    def residual(p, _):
+        n = _index(model, p, lam, terms)
+        return ((_reflectance(cos_i[None, :], eta1, n[:, None], polarization) - R) * w).ravel()
+
+    sol = optx.least_squares(residual, solver, p0, max_steps=max_steps, throw=False)
+    p = sol.value
+    r = residual(p, None)
+    J = jax.jacfwd(residual)(p, None)
+    JTJ = J.T @ J
+    # Scale the normal matrix to unit diagonal before inverting (the coefficients differ by orders
+    # of magnitude); the pseudo-inverse drops only directions the data cannot see at all.
+    d = jnp.sqrt(jnp.diagonal(JTJ))
+    d = jnp.where(d > 0, d, 1)
+    S = JTJ / (d[:, None] * d[None, :])
+    ev = jnp.linalg.eigvalsh(S)
+    cond = ev[-1] / jnp.maximum(ev[0], jnp.finfo(S.dtype).tiny)
+    cov = jnp.linalg.pinv(S, rtol=jnp.finfo(S.dtype).eps * S.shape[0], hermitian=True) / (d[:, None] * d[None, :])
+    dof = r.shape[0] - p.shape[0]
+    chi2 = jnp.sum(r * r) / dof
+    cov = cov * (jnp.maximum(chi2, 1) if sigma_given else chi2)  # as in fit_eta
+    se = jnp.sqrt(jnp.diagonal(cov))
+    rms = jnp.sqrt(jnp.mean((r / w.ravel()) ** 2))
+    ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(p)) & jnp.all(jnp.isfinite(se))
+    return p, cov, se, ok, rms, chi2, sol.stats["num_steps"], cond
+
+
+def fit_dispersion(wavelength_um, theta, R, *, model="sellmeier", terms=None, eta1=1.0,
+                   polarization="unpolarized", sigma=None, init=None, solver=None, max_steps=1024) -> DispersionFit:
+    r"""Fit a dispersion law to reflectance curves measured at several wavelengths.
+
+    **Arguments:**
+
+    - `wavelength_um`: `(w,)` wavelengths in micrometres.
+    - `theta`: `(m,)` angles of incidence in radians, shared by all wavelengths.
+    - `R`: `(w, m)` reflectance, one curve per wavelength.
+    - `model`: `"sellmeier"` (`n^2 = 1 + sum B_i lambda^2/(lambda^2 - C_i)`) or `"cauchy"`
+      (`n = A + B/lambda^2 + C/lambda^4 + ...`).
+    - `terms`: Sellmeier terms or Cauchy coefficients; default 3 for both. A 3-term Sellmeier law
+      (6 coefficients, one pole in the infrared) is determined only by precise data over a wide
+      wavelength range: with noisy data its infrared pole wanders along a flat valley and the fit
+      reports `converged=False`; use `terms=2` (or Cauchy) there.
+    - `eta1`, `polarization`, `sigma`: as in `fit_eta` (`sigma` broadcastable to `(w, m)`).
+    - `init`: starting coefficients (same layout as `DispersionFit.coefficients`). By default each
+      wavelength is first fitted alone with `fit_eta` (batched), then the law is fitted to those
+      indices by linear least squares (Sellmeier: with poles typical of glasses), and the result
+      starts the joint fit to all the reflectance data.
+    - `solver`: optimistix least-squares solver (default Levenberg-Marquardt).
+
+    **Returns:** a `DispersionFit`; `fit.index(lambda)` gives `n(lambda)` with its standard error.
+
+    **Errors:** as `fit_eta` (checked on every curve), plus an unknown `model` and a wavelength
+    count that does not match `R`.
+    """
+    if model not in MODELS:
+        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    if polarization not in POLARIZATIONS:
+        raise ValueError(f"polarization must be one of {POLARIZATIONS}, got {polarization!r}")
+    terms = 3 if terms is None else int(terms)
+    if model == "sellmeier" and terms not in _SELLMEIER_POLES:
+        raise ValueError(f"sellmeier terms must be 1, 2 or 3, got {terms}")
+    n_par = terms if model == "cauchy" else 2 * terms
+    lam = np.asarray(wavelength_um) if _is_concrete(wavelength_um) else wavelength_um
+    if _is_concrete(theta, R, sigma, wavelength_um):
+        check_curves(theta, R, sigma, n_params=1)
+        lam_np = np.asarray(wavelength_um, np.float64)
+        if lam_np.ndim != 1 or np.shape(R)[:-1] != lam_np.shape:
+            raise ValueError(f"wavelength_um must have shape (w,) matching R's leading axis; got {lam_np.shape} and R {np.shape(R)}")
+        if not np.all(np.isfinite(lam_np) & (lam_np > 0)):
+            raise ValueError(f"wavelength_um must be finite and positive, got {lam_np}")
+        if lam_np.size * np.shape(R)[-1] <= n_par:
+            raise ValueError(f"{lam_np.size * np.shape(R)[-1]} data points cannot determine {n_par} coefficients")
+        _warn_if_x64_off(theta, R)
+    R = jnp.asarray(V.as_real(R, "R"))
+    theta = jnp.asarray(V.as_real(theta, "theta"))
+    dt = V.float_dtype(R, theta)
+    R, theta, lam = R.astype(dt), theta.astype(dt), jnp.asarray(lam, dt)
+    w = jnp.ones((), dt) if sigma is None else 1 / jnp.asarray(sigma, dt)
+    w = jnp.broadcast_to(w, R.shape)
+    if init is None:
+        per = fit_eta(theta, R, eta1=eta1, polarization=polarization, sigma=sigma)
+        p0 = jnp.asarray(_initial(model, terms, lam, per.eta), dt)
+    else:
+        p0 = jnp.asarray(init, dt)
+        if p0.shape != (n_par,):
+            raise ValueError(f"init must have {n_par} coefficients for {model} with {terms} terms, got shape {p0.shape}")
+    tol = _tol(dt)
+    solver = optx.LevenbergMarquardt(rtol=tol, atol=tol) if solver is None else solver
+    p, cov, se, ok, rms, chi2, steps, cond = _solve(
+        theta, lam, R, w, jnp.asarray(eta1, dt), p0, model=model, terms=terms, polarization=polarization,
+        solver=solver, max_steps=int(max_steps), sigma_given=sigma is not None)
+    return DispersionFit(model, terms, p, cov, se, ok, rms, chi2, steps, cond)

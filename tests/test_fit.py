@@ -1,0 +1,240 @@
+"""Index fitting: recovery of known indices (data from tmm, an independent implementation),
+statistical honesty of the errors, batching, degenerate data, the CSV reader and the CLI."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import tmm
+
+import jaxoptics as jo
+from jaxoptics.__main__ import main
+
+THETA = np.deg2rad(np.linspace(0, 85, 90))
+
+
+def tmm_curve(n1, n2, theta, pol):
+    """Reflectance from tmm (transfer matrices): the oracle, independent of jaxoptics."""
+    def one(p):
+        return np.array([tmm.coh_tmm(p, [n1, n2], [np.inf, np.inf], t, 0.6)["R"] for t in theta])
+    if pol == "unpolarized":
+        return (one("s") + one("p")) / 2
+    return one(pol)
+
+
+@pytest.mark.parametrize("eta2", [1.01, 1.333, 1.5, 2.4, 4.0])
+@pytest.mark.parametrize("pol", ["unpolarized", "s", "p"])
+def test_recovers_index_from_tmm_data(eta2, pol):
+    R = tmm_curve(1.0, eta2, THETA, pol)
+    r = jo.fit_eta(THETA, R, polarization=pol)
+    assert bool(r.converged)
+    assert abs(float(r.eta) - eta2) < 1e-7 * eta2
+
+
+@pytest.mark.parametrize("eta1,eta2", [(1.5, 1.0), (1.5, 1.2), (1.333, 1.0), (2.4, 1.5), (1.5, 1.45)])
+def test_internal_reflection_with_tir_plateau(eta1, eta2):
+    R = tmm_curve(eta1, eta2, THETA, "unpolarized")
+    r = jo.fit_eta(THETA, R, eta1=eta1)
+    assert bool(r.converged) and abs(float(r.eta) - eta2) < 1e-7
+
+
+@pytest.mark.parametrize("eta2", [0.2 + 3.0j, 1.5 + 0.5j, 2.5 + 2.5j, 0.05 + 4.2j, 1.45 + 0.0j])
+def test_recovers_complex_index_from_tmm_data(eta2):
+    R = tmm_curve(1.0, eta2, THETA, "unpolarized")
+    r = jo.fit_eta(THETA, R, absorbing=True)
+    assert bool(r.converged)
+    assert abs(complex(r.eta) - eta2) < 1e-7 * abs(eta2)
+    assert r.eta.real > 0 and r.eta.imag >= 0
+    if eta2.imag == 0:  # k = 0: R is quadratic in k there, so its first-order error is unbounded
+        assert np.isinf(float(r.stderr.imag)) and np.isfinite(float(r.stderr.real))
+    else:
+        assert np.all(np.isfinite(np.asarray(r.covariance)))
+
+
+def test_synthetic_reflectance_matches_tmm():
+    for n2, pol in ((1.5, "s"), (0.2 + 3j, "p"), (2.0, "unpolarized")):
+        np.testing.assert_allclose(np.asarray(jo.synthetic_reflectance(None, n2, THETA, polarization=pol)),
+                                   tmm_curve(1.0, n2, THETA, pol), atol=1e-13)
+
+
+def test_errors_are_honest_cramer_rao():
+    """sigma = 1e-3 over 0-85 degrees: all converge; the spread of the estimates matches the reported
+    standard error within 20% (it is the Cramer-Rao bound here); ~95% within 2 standard errors."""
+    N = 3000
+    key = jax.random.PRNGKey(42)
+    for eta, sigma in ((1.5, None), (1.5, 1e-3), (2.4, None)):
+        R = jo.synthetic_reflectance(key, jnp.full(N, eta), THETA, noise=1e-3)
+        r = jo.fit_eta(THETA, R, sigma=sigma)
+        assert bool(jnp.all(r.converged))
+        spread = float(jnp.std(r.eta))
+        reported = float(jnp.sqrt(jnp.mean(r.stderr**2)))
+        assert abs(spread / reported - 1) < 0.2, (spread, reported)
+        within = float(jnp.mean(jnp.abs(r.eta - eta) < 2 * r.stderr))
+        assert 0.93 < within < 0.975, within  # binomial: 0.954 +- 3 sd for N = 3000
+
+
+def test_complex_errors_are_honest():
+    N = 800
+    eta = 0.2 + 3.0j
+    R = jo.synthetic_reflectance(jax.random.PRNGKey(7), jnp.full(N, eta), THETA, noise=1e-3)
+    r = jo.fit_eta(THETA, R, absorbing=True, sigma=1e-3)
+    assert bool(jnp.all(r.converged))
+    for part in (jnp.real, jnp.imag):
+        spread = float(jnp.std(part(r.eta)))
+        reported = float(jnp.sqrt(jnp.mean(part(r.stderr) ** 2)))
+        assert abs(spread / reported - 1) < 0.2, (spread, reported)
+    # the reported correlation of n and k matches the sample correlation
+    sample = float(jnp.corrcoef(jnp.real(r.eta), jnp.imag(r.eta))[0, 1])
+    assert abs(float(jnp.mean(r.corr_nk)) - sample) < 0.1
+
+
+def test_batch_equals_individual_fits_and_keeps_shape():
+    etas = jnp.array([[1.2, 1.5, 3.0], [1.05, 2.0, 4.0]])
+    R = jo.synthetic_reflectance(jax.random.PRNGKey(0), etas, THETA, noise=1e-3)
+    r = jo.fit_eta(THETA, R)
+    assert r.eta.shape == (2, 3) and r.covariance.shape == (2, 3, 1, 1)
+    for a in range(2):
+        for b in range(3):
+            one = jo.fit_eta(THETA, R[a, b])
+            np.testing.assert_allclose(float(one.eta), float(r.eta[a, b]), rtol=1e-12)
+            np.testing.assert_allclose(float(one.stderr), float(r.stderr[a, b]), rtol=1e-9)
+
+
+def test_wide_range_all_converge():
+    etas = jnp.concatenate([jnp.linspace(1.01, 4.0, 300)])
+    R = jo.synthetic_reflectance(jax.random.PRNGKey(3), etas, THETA, noise=1e-3)
+    r = jo.fit_eta(THETA, R)
+    assert bool(jnp.all(r.converged))
+    assert float(jnp.max(jnp.abs(r.eta - etas) / r.stderr)) < 5
+
+
+def test_fit_result_under_jit_and_vmap():
+    R = jo.synthetic_reflectance(None, jnp.array([1.3, 1.7]), THETA)
+    eager = jo.fit_eta(THETA, R)
+    jitted = jax.jit(lambda R: jo.fit_eta(THETA, R))(R)
+    np.testing.assert_allclose(np.asarray(jitted.eta), np.asarray(eager.eta), rtol=1e-12)
+    out = jax.jit(lambda r: r)(eager)  # FitResult is a pytree
+    assert isinstance(out, jo.FitResult)
+
+
+def test_degenerate_data_errors():
+    with pytest.raises(ValueError, match="1 angle"):
+        jo.fit_eta(THETA[:1], np.array([0.04]))
+    with pytest.raises(ValueError, match="same reflectance"):
+        jo.fit_eta(THETA, np.full(THETA.shape, 0.04))
+    R = np.asarray(jo.synthetic_reflectance(None, 1.5, THETA)).copy()
+    R[7] = np.nan
+    with pytest.raises(ValueError, match=r"R\[7\] = nan is not finite"):
+        jo.fit_eta(THETA, R)
+    with pytest.raises(ValueError, match=r"theta\[0\] = -0.1 rad"):
+        jo.fit_eta(np.r_[-0.1, THETA[1:]], np.asarray(jo.synthetic_reflectance(None, 1.5, THETA)))
+    with pytest.raises(ValueError, match="sigma"):
+        jo.fit_eta(THETA, np.asarray(jo.synthetic_reflectance(None, 1.5, THETA)), sigma=0.0)
+    with pytest.raises(ValueError, match="polarization must be one of"):
+        jo.fit_eta(THETA, np.asarray(jo.synthetic_reflectance(None, 1.5, THETA)), polarization="x")
+    with pytest.raises(ValueError, match=r"R must have shape \(\.\.\., 90\)"):
+        jo.fit_eta(THETA, np.ones(80))
+
+
+def test_pure_noise_is_not_a_confident_answer():
+    """Uniform noise in place of a reflectance curve: the errors are large or the fit is flagged."""
+    rng = np.random.default_rng(0)
+    R = rng.uniform(0, 1, size=(50, THETA.size))
+    for sigma in (None, 0.01):
+        r = jo.fit_eta(THETA, R, sigma=sigma)
+        confident = np.asarray(r.converged) & (np.asarray(r.stderr) < 0.05 * np.asarray(r.eta))
+        assert not np.any(confident & (np.asarray(r.chi2_reduced) < 2 if sigma else True))
+        assert np.all(np.asarray(r.residual_rms) > 0.2)
+
+
+# ---- dispersion ----
+
+def test_published_indices():
+    assert float(jo.material_index("fused_silica", 0.5893)) == pytest.approx(1.458403, abs=1e-6)  # Malitson 1965
+    assert float(jo.material_index("N-BK7", 0.5876)) == pytest.approx(1.5168, abs=1e-4)  # SCHOTT n_d
+    assert float(jo.material_index("water", 0.5893)) == pytest.approx(1.3333, abs=2e-4)  # Daimon & Masumura
+    assert float(jo.cauchy(0.5, (1.5, 0.004, 1e-4))) == pytest.approx(1.5 + 0.004 / 0.25 + 1e-4 / 0.0625)
+    with pytest.raises(ValueError, match="unknown material"):
+        jo.material_index("unobtainium", 0.5)
+
+
+def test_dispersion_fit_recovers_fused_silica():
+    lam = np.array([0.365, 0.405, 0.436, 0.486, 0.546, 0.633, 0.706, 0.852, 1.014, 1.33, 1.55])
+    theta = np.deg2rad(np.linspace(0, 85, 60))
+    R = np.stack([tmm_curve(1.0, float(jo.material_index("fused_silica", l)), theta, "unpolarized") for l in lam])
+    f = jo.fit_dispersion(lam, theta, R, model="sellmeier")
+    n, se = f.index(0.5893)
+    assert bool(f.converged)
+    assert abs(float(n) - 1.458403) < 1e-5
+    # with noise (sigma = 1e-3) a 2-term law: the error at 589.3 nm is honest (within 3 standard
+    # errors, for each of several noise draws)
+    for seed in range(3):
+        Rn = R + 1e-3 * np.random.default_rng(seed).normal(size=R.shape)
+        f = jo.fit_dispersion(lam, theta, Rn, model="sellmeier", terms=2, sigma=1e-3)
+        n, se = f.index(0.5893)
+        assert bool(f.converged) and abs(float(n) - 1.458403) < 3 * float(se)
+        assert 0.7 < float(f.chi2_reduced) < 1.3
+    # Cauchy is a coarser law: it converges, its error at 589.3 nm is larger but still small
+    fc = jo.fit_dispersion(lam, theta, R, model="cauchy")
+    assert bool(fc.converged) and abs(float(fc.index(0.5893)[0]) - 1.458403) < 5e-4
+
+
+# ---- CSV and CLI ----
+
+def _write(tmp_path, text, name="data.csv"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_load_reflectance_errors_name_file_line_value(tmp_path):
+    cases = [
+        ("", "is empty"),
+        ("# only a comment\n", "is empty"),
+        ("angle_deg,R\n", "no data rows"),
+        ("angle,R\n10,0.04\n", r"missing required column 'angle_deg'.*did you mean angle_deg"),
+        ("angle_deg,R\n10,0.04\n20\n", r"line 3: 1 fields, but the header \(line 1\) has 2"),
+        ("angle_deg,R\n10,0.04\n20,abc\n", r"line 3: column 2 \(R\): 'abc' is not a number"),
+        ("angle_deg,R\n10,nan\n", r"line 2: column 2 \(R\): 'nan' is not finite"),
+        ("angle_deg,R\n95,0.04\n", r"line 2: column 1 \(angle_deg\): angle 95.0 deg is outside \[0, 90\]"),
+        ("angle_deg,R\n10,1.2\n", r"line 2: column 2 \(R\): reflectance 1.2 is outside"),
+        ("angle_deg,R,sigma\n10,0.04,0\n", r"line 2: column 3 \(sigma\): 0.0 must be positive"),
+        ("angle_deg,R,polarization\n10,0.04,x\n", r"line 2: column 3 \(polarization\): unknown polarization 'x'"),
+    ]
+    for k, (text, pattern) in enumerate(cases):
+        p = _write(tmp_path, text, f"c{k}.csv")
+        with pytest.raises(ValueError, match=pattern) as e:
+            jo.load_reflectance(p)
+        assert str(p) in str(e.value)
+
+
+def test_load_reflectance_groups_curves(tmp_path):
+    text = "# comment\nangle_deg,R,polarization,wavelength_um,note\n20,0.05,s,0.5,a\n10,0.04,s,0.5,b\n10,0.03,TM,0.5,c\n10,0.04,s,0.6,d\n"
+    d = jo.load_reflectance(_write(tmp_path, text))
+    assert d.ignored_columns == ("note",)
+    curves = d.curves()
+    assert [(c.wavelength_um, c.polarization, c.R.size) for c in curves] == [(0.5, "p", 1), (0.5, "s", 2), (0.6, "s", 1)]
+    np.testing.assert_allclose(curves[1].theta, np.deg2rad([10, 20]))  # sorted by angle
+    np.testing.assert_array_equal(curves[1].lines, [4, 3])
+
+
+def test_cli_fit_example(capsys, tmp_path):
+    out_png = tmp_path / "fit.png"
+    assert main(["fit", "--example", "--plot", str(out_png)]) == 0
+    out = capsys.readouterr().out
+    assert "combined at 0.5876 um" in out and out_png.stat().st_size > 10000
+    # the combined estimate is within 4 standard errors of the index the example was made with
+    line = [l for l in out.splitlines() if l.startswith("combined")][0]
+    est, se = float(line.split("eta = ")[1].split()[0]), float(line.split("+- ")[1].split()[0])
+    assert abs(est - float(jo.material_index("N-BK7", 0.5876))) < 4 * se
+
+
+def test_cli_fit_file_and_errors(capsys, tmp_path):
+    R = np.asarray(jo.synthetic_reflectance(None, 1.7, THETA[::5]))
+    rows = "\n".join(f"{np.rad2deg(t):.6f},{r:.12f}" for t, r in zip(THETA[::5], R))
+    p = _write(tmp_path, "angle_deg,R\n" + rows + "\n")
+    assert main(["fit", str(p)]) == 0
+    assert "1.7000000" in capsys.readouterr().out
+    bad = _write(tmp_path, "angle_deg,R\n10,0.04\n20,x\n", "bad.csv")
+    assert main(["fit", str(bad)]) == 2
+    assert "bad.csv, line 3" in capsys.readouterr().err
