@@ -5,6 +5,7 @@ Commands:
           critical and Brewster angles (a quick check that the install works).
   fit     fit the refractive index to reflectance-versus-angle data in a CSV file
           (`fit --example` uses the bundled N-BK7 measurement).
+  bench   measure speed (and error) side by side on this machine; --quick for a short run.
 """
 
 from __future__ import annotations
@@ -138,6 +139,13 @@ def _plot_fits(fits, args, title):
     fig.savefig(args.plot, dpi=120)
 
 
+def _bench(args) -> int:
+    from ._bench import run
+
+    run(quick=args.quick, sections=tuple(args.sections.split(",")), out_dir=args.out)
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m jaxoptics", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -153,6 +161,11 @@ def main(argv=None) -> int:
     p.add_argument("--absorbing", action="store_true", help="fit a complex index n + ik")
     p.add_argument("--plot", metavar="OUT.png", help="save data, fit and residuals as a figure")
     p.set_defaults(func=_fit)
+    p = sub.add_parser("bench", help="speed and error, side by side with peers, on this machine")
+    p.add_argument("--quick", action="store_true", help="a reduced run (about a minute)")
+    p.add_argument("--out", default="bench_out", help="directory for bench.md, bench.json and the charts")
+    p.add_argument("--sections", default="fit", help="comma-separated: fit")
+    p.set_defaults(func=_bench)
     args = parser.parse_args(argv)
     return args.func(args)
 

@@ -118,16 +118,23 @@ def _grid(eta1, absorbing, dtype):
         k = jnp.concatenate([jnp.zeros(1, dtype), eta1 * jnp.exp(jnp.linspace(jnp.log(1e-3), jnp.log(10.0), 19)).astype(dtype)])
         nn, kk = jnp.meshgrid(n, k, indexing="ij")
         return jnp.stack([nn.ravel(), kk.ravel()], -1)
-    return (eta1 * jnp.exp(jnp.linspace(jnp.log(0.12), jnp.log(8.0), 96)).astype(dtype))[:, None]
+    # log(eta / eta1) = -u ... u for u log-spaced in [1e-3, 2.1]: a range of 0.12 to 8 times eta1,
+    # and fine near eta1, where a low-contrast curve changes fastest with the index
+    u = jnp.exp(jnp.linspace(jnp.log(1e-3), jnp.log(2.1), 24))
+    x = jnp.concatenate([-u[::-1], u])
+    return (eta1 * jnp.exp(x)).astype(dtype)[:, None]
 
 
 def _heuristics(theta, R, eta1, absorbing):
     """Per-curve physical estimates of a real index, shape (4, p)."""
     # normal-incidence inversion from the smallest angle (both branches: R0 is symmetric in eta2/eta1)
+    # (s is kept off 0: eta2 == eta1 is a stationary point, dR/deta = 0, where Gauss-Newton stalls)
     k0 = jnp.argmin(theta)
-    s = jnp.sqrt(jnp.clip(R[k0], 0, 0.98))
-    # onset of a TIR plateau: the smallest angle with R near 1 (internal reflection)
-    onset = jnp.min(jnp.where(R >= 0.97, theta, jnp.pi / 2))
+    s = jnp.sqrt(jnp.clip(R[k0], 1e-6, 0.98))
+    # onset of a TIR plateau: the smallest angle with R near 1 (internal reflection); NaN (so never
+    # chosen) when there is no plateau
+    plateau = R >= 0.97
+    onset = jnp.where(jnp.any(plateau), jnp.min(jnp.where(plateau, theta, jnp.pi / 2)), jnp.nan)
     # Brewster's minimum (of R_p; the unpolarized minimum lies near it too)
     brewster = jnp.clip(theta[jnp.argmin(R)], 1e-3, 1.5)
     h = jnp.stack([eta1 * (1 + s) / (1 - s), eta1 * (1 - s) / (1 + s), eta1 * jnp.sin(onset), eta1 * jnp.tan(brewster)])
@@ -148,8 +155,28 @@ def _start(theta, R, w, eta1, residual, absorbing, polarization):
     sse_grid = (w2 @ (Rg * Rg).T) - 2 * ((w2 * R) @ Rg.T) + jnp.sum(w2 * R * R, -1, keepdims=True)
     heur = jax.vmap(lambda R1: _heuristics(theta, R1, eta1, absorbing))(R)  # (B, 4, p)
     sse_heur = jax.vmap(lambda hs, w1, R1: jax.vmap(lambda y: jnp.sum(residual(y, R1, w1) ** 2))(hs))(heur, w, R)
-    cands = jnp.concatenate([jnp.broadcast_to(grid, (R.shape[0],) + grid.shape), heur], axis=1)
-    sse = jnp.concatenate([sse_grid, sse_heur], axis=1)
+    sse_grid = jnp.where(jnp.isfinite(sse_grid), sse_grid, jnp.inf)
+    if not absorbing:
+        # Refine the best grid point by the vertex of the parabola (in log eta) through it and its
+        # neighbours: the start is then within a fraction of a percent and Gauss-Newton needs
+        # 3 to 5 steps.
+        K = grid.shape[0]
+        k = jnp.clip(jnp.argmin(sse_grid, axis=1), 1, K - 2)
+        s0, s1, s2 = (jnp.take_along_axis(sse_grid, (k + d)[:, None], axis=1)[:, 0] for d in (-1, 0, 1))
+        x = jnp.log(grid[:, 0])
+        x0, x1, x2 = x[k - 1], x[k], x[k + 1]
+        # vertex of the parabola through (x0, s0), (x1, s1), (x2, s2)
+        num = (x1 - x0) ** 2 * (s1 - s2) - (x1 - x2) ** 2 * (s1 - s0)
+        den = (x1 - x0) * (s1 - s2) - (x1 - x2) * (s1 - s0)
+        ok = (den != 0) & (s0 >= s1) & (s2 >= s1)
+        xv = jnp.where(ok, x1 - 0.5 * num / jnp.where(ok, den, 1), x1)
+        refined = jnp.exp(jnp.clip(xv, x0, x2))[:, None]
+        sse_ref = jax.vmap(lambda y, w1, R1: jnp.sum(residual(y, R1, w1) ** 2))(refined, w, R)
+        cands = jnp.concatenate([jnp.broadcast_to(grid, (R.shape[0],) + grid.shape), heur, refined[:, None]], axis=1)
+        sse = jnp.concatenate([sse_grid, sse_heur, sse_ref[:, None]], axis=1)
+    else:
+        cands = jnp.concatenate([jnp.broadcast_to(grid, (R.shape[0],) + grid.shape), heur], axis=1)
+        sse = jnp.concatenate([sse_grid, sse_heur], axis=1)
     best = jnp.argmin(jnp.where(jnp.isfinite(sse), sse, jnp.inf), axis=1)
     return jnp.take_along_axis(cands, best[:, None, None], axis=1)[:, 0]
 
@@ -184,11 +211,27 @@ def _inverse_with_null_space(A):
     component along them has variance inf, the others the pseudo-inverse's finite value. Example:
     k exactly 0 in a complex fit, where R depends on k only quadratically, so d R / d k = 0.
     """
+    p = A.shape[0]
+    if p == 1:  # closed form: a batched 1x1 eigh costs more than the whole solve
+        a = A[0, 0]
+        return jnp.where(a > 0, 1 / jnp.where(a > 0, a, 1), jnp.inf).reshape(1, 1)
     d = jnp.sqrt(jnp.diagonal(A))
     d_ok = d > 0
     d = jnp.where(d_ok, d, 1)
     S = A / (d[:, None] * d[None, :])
-    lam, V = jnp.linalg.eigh(S)
+    if p == 2:
+        # S = [[1, rho], [rho, 1]] (where both diagonals are nonzero): eigenvalues 1 -+ |rho| with
+        # eigenvectors (1, -+sign(rho)) / sqrt(2), in closed form (no batched LAPACK call).
+        rho = S[0, 1]
+        sgn = jnp.where(rho < 0, -1.0, 1.0).astype(A.dtype)
+        lam = jnp.stack([1 - jnp.abs(rho), 1 + jnp.abs(rho)])
+        h = jnp.sqrt(jnp.asarray(0.5, A.dtype))
+        V = jnp.stack([jnp.stack([h, h]), jnp.stack([-sgn * h, sgn * h])])
+        lam = jnp.where(d_ok[0] & d_ok[1], lam, jnp.where(d_ok[0] | d_ok[1], jnp.array([0.0, 1.0], A.dtype), 0))
+        V = jnp.where(d_ok[0] & d_ok[1], V, jnp.where(d_ok[0], jnp.array([[0.0, 1.0], [1.0, 0.0]], A.dtype),
+                                                      jnp.array([[1.0, 0.0], [0.0, 1.0]], A.dtype)))
+    else:
+        lam, V = jnp.linalg.eigh(S)
     good = lam > lam[-1] * A.shape[0] * jnp.finfo(A.dtype).eps
     inv_lam = jnp.where(good, 1 / jnp.where(good, lam, 1), 0)
     cov = (V * inv_lam[None, :]) @ V.T / (d[:, None] * d[None, :])
