@@ -6,6 +6,8 @@ Commands:
   fit     fit the refractive index to reflectance-versus-angle data in a CSV file
           (`fit --example` uses the bundled N-BK7 measurement).
   bench   measure speed (and error) side by side on this machine; --quick for a short run.
+  stress  numerical stress test of every kernel (10^6 inputs per dtype; values, gradients,
+          invariants) against high-precision references.
 """
 
 from __future__ import annotations
@@ -146,6 +148,13 @@ def _bench(args) -> int:
     return 0
 
 
+def _stress(args) -> int:
+    from ._stress import run
+
+    run(n=args.n, out_dir=args.out, mp_samples=args.mp_samples, mitsuba=not args.no_mitsuba)
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m jaxoptics", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -166,6 +175,12 @@ def main(argv=None) -> int:
     p.add_argument("--out", default="bench_out", help="directory for bench.md, bench.json and the charts")
     p.add_argument("--sections", default="fit", help="comma-separated: fit")
     p.set_defaults(func=_bench)
+    p = sub.add_parser("stress", help="numerical stress test of every kernel")
+    p.add_argument("--n", type=int, default=1_000_000, help="inputs per dtype (default 10^6)")
+    p.add_argument("--mp-samples", type=int, default=2000, help="float64 inputs checked against mpmath per kernel")
+    p.add_argument("--no-mitsuba", action="store_true", help="skip the side-by-side run of Mitsuba 3")
+    p.add_argument("--out", default="stress_out", help="directory for stress.md and stress.json")
+    p.set_defaults(func=_stress)
     args = parser.parse_args(argv)
     return args.func(args)
 

@@ -111,6 +111,25 @@ def _abs_cos(cos_i):
     return jnp.where(cos_i < 0, -cos_i, cos_i)
 
 
+def sqrt_where(x, mask):
+    """`sqrt(x)` where `mask`, else 0, with finite gradients everywhere (the double-where rule).
+
+    `sqrt` has an infinite derivative at 0, and a single `where` multiplies that by zero, which is
+    NaN; so the square root's *input* is made harmless in the unselected lanes too. That input is
+    `max(x, tiny)` (real) or `tiny` where `mask` is false (complex), not the customary 1: XLA may
+    evaluate `mask` more than once, in fusions that contract multiply-adds into FMAs differently,
+    and the two copies can then disagree where x is within rounding of 0. With 1 as the stand-in,
+    such a lane would return sqrt(1) = 1 (seen: R = -3827 near the critical angle in a jitted
+    float32 batch); with tiny it returns about 1e-19, which is as good as 0 there.
+    """
+    tiny = jnp.asarray(jnp.finfo(x.dtype).tiny, x.dtype)
+    if jnp.iscomplexobj(x):
+        safe = jnp.where(mask, x, tiny)
+    else:
+        safe = jnp.maximum(x, tiny)
+    return jnp.where(mask, jnp.sqrt(safe), 0)
+
+
 def _positive_finite(x):
     return (x > 0) & (x < jnp.inf)
 
@@ -134,27 +153,33 @@ def _prepare(cos_i, eta1, eta2, *, allow_complex: bool):
     return cos_i, eta1, jnp.broadcast_to(eta2, shape)
 
 
-def _kt_squared(ki, eta1, eta2):
+def _kt_squared(ki, eta1, eta2, sin_sq=None):
     """k_t^2 = eta2^2 - eta1^2 sin^2, with diff = eta2^2 - eta1^2 and m = k_i^2 - eta1^2.
 
-    No `1 - cos^2` anywhere (it loses everything at grazing incidence). Two forms, each exact
-    where the other is not:
+    No `1 - cos^2` anywhere (it loses everything at grazing incidence). Two forms of k_t^2, each
+    exact where the other is not, and an m consistent with the one used (m enters the numerator
+    of r_p, and near the critical angle any disagreement between m and k_t^2 is amplified):
 
-    * entering a denser medium (diff >= 0): k_t^2 = diff + k_i^2, a sum of two non-negative terms
-      with diff = (eta2 - eta1)(eta2 + eta1) exact by Sterbenz's lemma when the indices are close
-      (so grazing incidence with eta1 ~ eta2 keeps r = -1 exactly);
-    * leaving it (diff < 0, TIR possible): k_t^2 = eta2^2 + m with m = (k_i - eta1)(k_i + eta1).
-      Near the critical angle this sum cancels, but its rounding is ulp(eta2^2), the same as moving
-      eta2 by half an ulp; the form diff + k_i^2 would cancel at the scale ulp(eta1^2), far
-      larger when eta1 >> eta2. m is formed from the rounded k_i that every later use sees, and it
-      is the very term that enters the numerator of r_p, so k_t and r_p stay consistent.
+    * eta1 <= 2 eta2: k_t^2 = diff + k_i^2 with diff = (eta2 - eta1)(eta2 + eta1), where
+      eta2 - eta1 is exact by Sterbenz's lemma. Grazing incidence with eta1 ~ eta2 keeps r = -1
+      exactly, and near the critical angle the error is ulp(k_i^2), tiny against the scale on which
+      k_t^2 changes. (Entering the denser medium, m is formed directly; leaving it, m = k_t^2 -
+      eta2^2, exactly consistent.)
+    * eta1 > 2 eta2: k_t^2 = eta2^2 + m with m = (k_i - eta1)(k_i + eta1). Here diff + k_i^2 would
+      cancel at the scale ulp(eta1^2), far above eta2^2; this form cancels only at ulp(eta2^2), the
+      same as moving eta2 by half an ulp.
 
-    `refract` uses this same function, so its TIR mask agrees exactly with `fresnel`'s.
+    `refract` uses this same function (with sin^2 from a cross product, see there).
     """
     diff = (eta2 - eta1) * (eta2 + eta1)
-    m = (ki - eta1) * (ki + eta1)
-    denser = (jnp.real(diff) if jnp.iscomplexobj(diff) else diff) >= 0
-    q = jnp.where(denser, diff + ki * ki, eta2 * eta2 + m)
+    # m = -eta1^2 sin^2: from the given sin^2 (refract passes |i x n|^2, accurate near normal
+    # incidence where a cosine has lost the angle), or from the rounded k_i
+    m_direct = (ki - eta1) * (ki + eta1) if sin_sq is None else -(eta1 * eta1) * sin_sq
+    e1r, e2r = (jnp.real(eta1), jnp.real(eta2)) if jnp.iscomplexobj(eta2) else (eta1, eta2)
+    far = e1r > 2 * e2r
+    q_close = diff + ki * ki
+    q = jnp.where(far, eta2 * eta2 + m_direct, q_close)
+    m = jnp.where(far | (e2r >= e1r), m_direct, q_close - eta2 * eta2)
     return q, diff, m
 
 
@@ -167,7 +192,7 @@ class _Terms(NamedTuple):
     diff: jnp.ndarray  # eta2**2 - eta1**2, as (eta2 - eta1)(eta2 + eta1)
     tir: jnp.ndarray  # total internal reflection (always false on the complex path)
     m: jnp.ndarray  # k_i^2 - eta1^2 = -eta1^2 sin^2
-    ok: jnp.ndarray  # an interface, outside TIR: false at grazing incidence with eta1 == eta2
+    ok: jnp.ndarray  # an interface: false only at grazing incidence with eta1 == eta2 (0/0)
     den_s: jnp.ndarray  # k_i + k_t, 1 where not ok
     den_p: jnp.ndarray  # eta2**2 k_i + eta1**2 k_t, 1 where not ok
     inv_s: jnp.ndarray  # 1 / den_s
@@ -188,27 +213,26 @@ def _terms(cos_i, eta1, eta2) -> _Terms:
     ki = eta1 * c
     q, diff, m = _kt_squared(ki, eta1, eta2)
     if jnp.iscomplexobj(q):
-        nz = q != 0
-        # Double where: the complex square root is singular at 0 (the critical angle of an index
-        # with k == 0); its input is replaced where it is not used.
-        kt = jnp.where(nz, jnp.sqrt(jnp.where(nz, q, 1)), 0)
+        # the complex square root is singular at 0 (the critical angle of an index with k == 0)
+        kt = sqrt_where(q, q != 0)
         # The decaying branch, Im(k_t) >= 0. The principal root already has it when Im(q) >= 0;
         # this also fixes a negative real q whose imaginary part is a signed zero.
         kt = jnp.where(jnp.imag(kt) < 0, -kt, kt)
         tir = jnp.zeros(jnp.shape(q), bool)
     else:
         tir = q < 0
-        pos = q > 0
-        # Double where: sqrt has an infinite derivative at 0, so the TIR / critical lanes get a
-        # safe input and k_t = 0 is selected afterwards.
-        kt = jnp.where(pos, jnp.sqrt(jnp.where(pos, q, 1)), 0)
+        kt = sqrt_where(q, q > 0)  # k_t = 0 under TIR and at the critical angle
     den_s = ki + kt
     den_p = eta2 * eta2 * ki + eta1 * eta1 * kt
     # Both denominators vanish together only at grazing incidence with eta1 == eta2 (0/0: no
     # interface). Squares are tested, not the values, because XLA flushes subnormals to zero: a
     # tiny nonzero k_i + k_t can have a square of exactly 0. The divisors themselves are replaced
     # (not only the quotients) so no NaN leaks into gradients.
-    ok = (_abs2(den_s) > 0) & (_abs2(den_p) > 0) & ~tir
+    # The TIR mask is deliberately not folded in here: XLA may evaluate `q < 0` more than once,
+    # in different fusions with different FMA contraction, so two copies can disagree when q is
+    # within rounding of 0. Each output therefore selects on `tir` exactly once, at the end,
+    # between two branches that both make sense there (at q ~ 0 both give R ~ 1).
+    ok = (_abs2(den_s) > 0) & (_abs2(den_p) > 0)
     den_s = jnp.where(ok, den_s, 1)
     den_p = jnp.where(ok, den_p, 1)
     return _Terms(eta1, eta2, c, ki, kt, diff, tir, m, ok, den_s, den_p, 1 / den_s, 1 / den_p, valid)
@@ -267,8 +291,8 @@ def _power_pair(t: _Terms, refl, trans):
     small = refl <= 0.5
     R = jnp.where(small, refl, 1 - trans)
     T = jnp.where(small, 1 - refl, trans)
-    R = jnp.where(t.ok, R, jnp.where(t.tir, 1, 0))
-    T = jnp.where(t.ok, T, jnp.where(t.tir, 0, 1))
+    R = jnp.where(t.tir, 1, jnp.where(t.ok, R, 0))
+    T = jnp.where(t.tir, 0, jnp.where(t.ok, T, 1))
     return R, T
 
 

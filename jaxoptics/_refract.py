@@ -11,19 +11,22 @@ medium it enters. The kernels face the normal toward the incident side themselve
 Mitsuba 3 and pbrt-v4 use `wi` pointing *away* from the surface and a single relative index
 `eta = n_t / n_i`: their `refract(wi, n, eta)` corresponds to `refract(-wi, n, n_i, n_t)` here.
 
-Directions are not normalized by the kernels: pass unit vectors. An element whose `i` or `n` is
-zero or not finite, or whose index is not finite and positive, gives NaN in every output (and
-`tir = False`); nothing raises inside `jit`.
+`refract` normalizes `i` and `n` (only their directions matter; unit inputs pass through
+unchanged): at a large index contrast an ulp of error in their length would otherwise be amplified
+into a visibly non-unit `t`. `reflect` does not (it is linear in `i` and has no such amplification):
+pass it a unit normal. An element whose `i` or `n` is zero or not finite, or whose index is not
+finite and positive, gives NaN in every output (and `tir = False`); nothing raises inside `jit`.
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 
 from . import _validate as V
-from ._fresnel import _kt_squared, _positive_finite
+from ._fresnel import _kt_squared, _positive_finite, sqrt_where
 
 METHODS = ("degreve", "heckbert", "bec", "oliveira")
 
@@ -54,6 +57,11 @@ def _vectors(i, n, *etas):
         named[k] = jnp.shape(e) + (3,)  # indices broadcast against the leading (batch) axes
     shape = V.broadcast_shapes(**named)
     return jnp.broadcast_to(i, shape), jnp.broadcast_to(n, shape), shape[:-1]
+
+
+def _rsqrt_positive(x):
+    ok = x > 0
+    return jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, x, 1)), 1)
 
 
 def _valid_vectors(i, n):
@@ -93,16 +101,19 @@ def refract(i, n, eta1, eta2, *, method: str = "degreve", oliveira_c: float = 1.
     - `method`: the formulation (all return the same `tir` mask, computed exactly):
 
       * `"degreve"` (default): de Greve's vector form `t = r i + (r cos_i - cos_t) n_f` written
-        without cancellation: `cos_t` from `k_t**2 = (eta2 - eta1)(eta2 + eta1) + (eta1 cos_i)**2`
-        and `r cos_i - cos_t = (eta1**2 - eta2**2) / (eta2 (k_i + k_t))`. Backward stable
-        everywhere; `t == i` exactly when `eta1 == eta2`. One square root, one division.
+        without cancellation: `k_t**2 = (eta2 - eta1)(eta2 + eta1) + (eta1 cos_i)**2`, or
+        `eta2**2 - eta1**2 |i x n|**2` when `eta1 > 2 eta2` (the sine from a cross product keeps
+        the angle near normal incidence, where the critical angle lies for a large contrast), and
+        `r cos_i - cos_t = (eta1**2 - eta2**2) / (eta2 (k_i + k_t))`. Backward stable everywhere;
+        `t = i` when `eta1 == eta2`. One square root, two divisions, one cross product.
       * `"heckbert"`: the same algebra as written in Heckbert's method and the de Greve note,
-        `cos_t = sqrt(1 - r**2 (1 - cos_i**2))`, `r = eta1 / eta2`. Same cost; loses accuracy at
-        grazing incidence and when `eta1` is close to `eta2` (the subtraction `r cos_i - cos_t`
-        cancels). Kept as the textbook baseline.
+        `cos_t = sqrt(1 - r**2 (1 - cos_i**2))`, `r = eta1 / eta2`. Loses accuracy at grazing
+        incidence when `eta1` is close to `eta2` (the subtraction `r cos_i - cos_t` cancels) and
+        near normal incidence when `eta1 >> eta2`. Kept as the textbook baseline.
       * `"bec"`: Bec's form (Real-Time Rendering, 2nd ed. eqs. 6.26-6.27):
         `w = r cos_i`, `k = sqrt(1 + (w - r)(w + r))`, `t = r i + (w - k) n_f`. Agrees with
-        `"degreve"` to rounding error.
+        `"degreve"` to rounding error for `eta1 <= 2 eta2`; like `"heckbert"` it takes `cos_t` from
+        `cos_i`, which loses the angle near the critical angle when `eta1 >> eta2`.
       * `"oliveira"`: Oliveira's cheap approximation (Real-Time Rendering, 2nd ed. eq. 6.28),
         `t = normalize(i - c n_f)` with the constant `c = oliveira_c`. No square root of the
         index term and independent of the indices (it does not follow Snell's law): the angular
@@ -136,25 +147,42 @@ def refract(i, n, eta1, eta2, *, method: str = "degreve", oliveira_c: float = 1.
     eta1 = jnp.broadcast_to(jnp.asarray(eta1, dt), batch)[..., None]
     eta2 = jnp.broadcast_to(jnp.asarray(eta2, dt), batch)[..., None]
 
+    valid = _valid_vectors(i, n) & _positive_finite(eta1[..., 0]) & _positive_finite(eta2[..., 0])
+    # Normalize: at a large index contrast, an error of an ulp in |i| is amplified by
+    # (eta1/eta2)^2 in cos_t^2, so directions a few ulps off unit length would otherwise give a
+    # visibly non-unit t. (rsqrt of exactly 1 is 1: unit inputs pass through unchanged.) The
+    # double where keeps the gradient finite for zero vectors, which give NaN below anyway.
+    i = i * _rsqrt_positive(_dot(i, i))[..., None]
+    n = n * _rsqrt_positive(_dot(n, n))[..., None]
     d = _dot(i, n)[..., None]
-    # Face the normal toward the incident side: cos_i = -(i . n_f) = |i . n| >= 0.
+    # Face the normal toward the incident side: cos_i = -(i . n_f) = |i . n| >= 0, at most 1
+    # (rounding can leave it an ulp above, which at a large index contrast would make cos_t > 1;
+    # a where, not jnp.minimum, so that the derivative at exactly normal incidence is kept).
     flip = d > 0
     nf = jnp.where(flip, -n, n)
     c = jnp.where(flip, d, -d)
+    c = jnp.where(c > 1, 1, c)
     reflected = i + 2 * c * nf
 
     ki = eta1 * c
-    q, diff, _ = _kt_squared(ki, eta1, eta2)  # (eta2 cos_t)^2; < 0 under TIR; shared with fresnel
+    # sin^2 from the cross product: near normal incidence a cosine is within an ulp of 1 and has
+    # lost the angle (c = 1 - theta^2/2), which matters when eta1 >> eta2 puts the critical angle
+    # there (eta2/eta1 = 1e-3: theta_c = 1e-3 rad); |i x n|^2 keeps it to full relative accuracy.
+    cr = jnp.cross(i, n)
+    s2 = _dot(cr, cr)[..., None]
+    q, diff, _ = _kt_squared(ki, eta1, eta2, sin_sq=s2)  # (eta2 cos_t)^2; < 0 under TIR
+    # One materialized q: without the barrier XLA may recompute q in several fusions, contracting
+    # multiply-adds into FMAs differently in each, and the returned mask could then disagree with
+    # the select below for q within rounding of 0 (a reflected t reported as transmitted).
+    q = jax.lax.optimization_barrier(q)
     tir = q < 0
 
     if method == "degreve":
-        pos = q > 0
-        # Double where: sqrt'(0) is infinite; the TIR/critical lanes take a safe input.
-        kt = jnp.where(pos, jnp.sqrt(jnp.where(pos, q, 1)), 0)
+        kt = sqrt_where(q, q > 0)  # double where (see sqrt_where): k_t = 0 under TIR
         den = ki + kt
         ok = den > 0  # false only at grazing incidence with eta1 == eta2 (0/0): t = i there
         # r cos_i - cos_t = (eta1^2 - eta2^2) / (eta2 (k_i + k_t)): no cancellation, exactly 0 for
-        # eta1 == eta2, where r = eta1 / eta2 is exactly 1, so t == i bit for bit.
+        # eta1 == eta2, where r = eta1 / eta2 is exactly 1, so t is (normalized) i bit for bit.
         coef = jnp.where(ok, -diff / (eta2 * jnp.where(ok, den, 1)), 0)
         t = (eta1 / eta2) * i + coef * nf
     elif method in ("heckbert", "bec"):
@@ -165,17 +193,14 @@ def refract(i, n, eta1, eta2, *, method: str = "degreve", oliveira_c: float = 1.
         else:
             w = r * c
             k2 = 1 + (w - r) * (w + r)
-        pos = k2 > 0
-        k = jnp.where(pos, jnp.sqrt(jnp.where(pos, k2, 1)), 0)  # double where, as above
+        k = sqrt_where(k2, k2 > 0)  # double where (see sqrt_where)
         t = r * i + (w - k) * nf
     else:  # oliveira
         t = i - oliveira_c * nf
         tt = _dot(t, t)[..., None]
-        okt = tt > 0
-        t = t / jnp.sqrt(jnp.where(okt, tt, 1))
+        t = t / jnp.sqrt(jnp.maximum(tt, jnp.asarray(jnp.finfo(tt.dtype).tiny, tt.dtype)))  # tt > 0 unless i == c n_f
 
     t = jnp.where(tir, reflected, t)
-    valid = _valid_vectors(i, n) & _positive_finite(eta1[..., 0]) & _positive_finite(eta2[..., 0])
     t = jnp.where(valid[..., None], t, jnp.nan)
     return Refraction(t, tir[..., 0] & valid)
 
@@ -198,8 +223,8 @@ def critical_angle(eta1, eta2):
     eta2 = jnp.broadcast_to(jnp.asarray(eta2, dt), shape)
     diff = (eta1 - eta2) * (eta1 + eta2)
     pos = diff > 0
-    # Double where: sqrt'(0) is infinite at eta1 == eta2.
-    theta = jnp.where(pos, jnp.arctan2(eta2, jnp.sqrt(jnp.where(pos, diff, 1))), jnp.pi / 2)
+    # double where (see sqrt_where): sqrt'(0) is infinite at eta1 == eta2
+    theta = jnp.where(pos, jnp.arctan2(eta2, sqrt_where(diff, pos)), jnp.pi / 2)
     valid = _positive_finite(eta1) & _positive_finite(eta2)
     return jnp.where(valid, theta, jnp.nan).astype(dt)
 
