@@ -184,7 +184,14 @@ def refract(i, n, eta1, eta2, *, method: str = "degreve", oliveira_c: float = 1.
         # r cos_i - cos_t = (eta1^2 - eta2^2) / (eta2 (k_i + k_t)): no cancellation, exactly 0 for
         # eta1 == eta2, where r = eta1 / eta2 is exactly 1, so t is (normalized) i bit for bit.
         coef = jnp.where(ok, -diff / (eta2 * jnp.where(ok, den, 1)), 0)
-        t = (eta1 / eta2) * i + coef * nf
+        t_entering = (eta1 / eta2) * i + coef * nf
+        # Leaving the denser medium, the normal component of that form, -r cos_i + coef = -cos_t,
+        # cancels by a factor up to eta1/eta2 (about 1000 at normal incidence for 1000:1). So there
+        # t = (eta1 i_tan - k_t n_f) / eta2 instead, with the tangential part of i from cross
+        # products, i_tan = n x (i x n), whose normal component is zero to within eps * sin_i.
+        i_tan = jnp.cross(n, cr)
+        t_leaving = (eta1 * i_tan - kt * nf) / eta2
+        t = jnp.where(eta1 > eta2, t_leaving, t_entering)
     elif method in ("heckbert", "bec"):
         r = eta1 / eta2
         if method == "heckbert":

@@ -1,0 +1,53 @@
+"""The stress test as part of the suite: a reduced sweep (about 10^5 inputs per dtype, the same
+adversarial categories), asserting the documented accuracy and that no value or gradient is NaN
+or infinite anywhere in the domain."""
+
+import numpy as np
+import pytest
+
+from jaxoptics._stress import run
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    return run(n=100_000, out_dir=tmp_path_factory.mktemp("stress"), mp_samples=150, mitsuba=False, quiet=True)
+
+
+def test_no_nan_or_inf_in_values_or_gradients(report):
+    for r in report["rows"]:
+        assert r["nan_inf_values"] == 0, r
+        assert r["nan_inf_grad_rev"] == 0 and r["nan_inf_grad_fwd"] == 0, r
+
+
+def test_sweep_size_and_categories(report):
+    for r in report["rows"]:
+        assert r["n"] >= 100_000
+
+
+# Documented accuracy (README, "Stress test"): error beyond the 2-ulp backward bound, in ulps.
+LIMITS = {
+    ("fresnel", "float64"): 4, ("fresnel_sp.R_s", "float64"): 4, ("fresnel_sp.R_p", "float64"): 4,
+    ("fresnel_rt.T", "float64"): 4, ("fresnel_amplitudes.r_s", "float64"): 8, ("fresnel_amplitudes.r_p", "float64"): 8,
+    ("refract[degreve]", "float64"): 4, ("reflect", "float64"): 4, ("reflect", "float32"): 4,
+    ("fresnel", "float32"): 5, ("fresnel_sp.R_s", "float32"): 4, ("fresnel_sp.R_p", "float32"): 5,
+    ("fresnel_rt.T", "float32"): 5, ("fresnel_amplitudes.r_s", "float32"): 8, ("fresnel_amplitudes.r_p", "float32"): 8,
+    ("fresnel, complex eta2 = n + 0.1 n i", "float32"): 8, ("fresnel, complex eta2 = n + 0.1 n i", "float64"): 4,
+}
+
+
+def test_accuracy_against_backward_bound(report):
+    for r in report["rows"]:
+        key = (r["kernel"], r["dtype"])
+        if key in LIMITS:
+            assert r["max_excess_over_bound_ulp"] <= LIMITS[key], (key, r["max_excess_over_bound_ulp"], r["worst_input"])
+
+
+def test_invariants(report):
+    for r in report["rows"]:
+        eps = float(np.finfo(r["dtype"]).eps)
+        if r["kernel"] in ("refract[degreve]", "reflect"):
+            assert r["worst_abs_norm_minus_1"] < 16 * eps, r
+        if r["kernel"] == "refract[degreve]":
+            assert r["worst_snell_residual"] < 16 * eps, r
+        if r["kernel"] == "fresnel_rt.T":
+            assert r["worst_R_plus_T_minus_1"] <= 2 * eps, r
