@@ -33,3 +33,7 @@ from ._data import Curve as Curve
 from ._data import ReflectanceData as ReflectanceData
 from ._data import example_path as example_path
 from ._data import load_reflectance as load_reflectance
+from ._shard import batch_mesh as batch_mesh
+from ._shard import fit_eta_sharded as fit_eta_sharded
+from ._shard import shard_batch as shard_batch
+from ._shard import sharded_map as sharded_map

@@ -113,6 +113,63 @@ def bench_fit(*, quick=False, progress=None):
     return rows
 
 
+_DEVICE_SNIPPET = """
+import json, statistics, sys, time
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp, numpy as np, jaxoptics as jo
+quick = sys.argv[1] == "1"
+mesh = jo.batch_mesh()
+def med(f, k=5):
+    jax.block_until_ready(f()); ts = []
+    for _ in range(k):
+        t = time.perf_counter(); jax.block_until_ready(f()); ts.append(time.perf_counter() - t)
+    return statistics.median(ts)
+n = 1_000_000 if quick else 10_000_000
+c, _ = jo.shard_batch(jnp.linspace(0.0, 1.0, n, dtype=jnp.float32), mesh)
+f = jax.jit(lambda c: jo.fresnel(c, 1.0, 1.5))
+t_k = med(lambda: f(c))
+B = 2000 if quick else 10_000
+th = np.deg2rad(np.linspace(0, 85, 90))
+R = jo.synthetic_reflectance(jax.random.PRNGKey(0), jnp.linspace(1.01, 4.0, B), jnp.asarray(th), noise=1e-3)
+Rs, _ = jo.shard_batch(R, mesh)
+t_f = med(lambda: jo.fit_eta(th, Rs).eta, 3)
+print(json.dumps(dict(devices=len(jax.devices()), fresnel_elements=n, fresnel_s=t_k, fit_curves=B, fit_s=t_f)))
+"""
+
+
+def bench_devices(*, quick=False, progress=None):
+    """Throughput against the number of (forced host) devices, each count in its own process."""
+    import subprocess
+    import sys
+
+    rows = []
+    for k in (1, 2, 4):
+        env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={k}", JAX_PLATFORMS="cpu")
+        out = subprocess.run([sys.executable, "-c", _DEVICE_SNIPPET, "1" if quick else "0"], env=env,
+                             capture_output=True, text=True, timeout=1200)
+        if out.returncode != 0:
+            rows.append(dict(devices=k, error=out.stderr.strip().splitlines()[-1][:200]))
+        else:
+            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        if progress:
+            progress.update(1)
+    return rows
+
+
+def devices_table(rows) -> str:
+    base = rows[0]
+    out = ["| devices | fresnel float32 (elements/s) | speed-up | fit_eta float64 (curves/s) | speed-up |",
+           "| ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        if "error" in r:
+            out.append(f"| {r['devices']} | failed: {r['error']} | | | |")
+            continue
+        out.append(f"| {r['devices']} | {r['fresnel_elements'] / r['fresnel_s']:.3g} | {base['fresnel_s'] / r['fresnel_s']:.2f}x | "
+                   f"{r['fit_curves'] / r['fit_s']:.3g} | {base['fit_s'] / r['fit_s']:.2f}x |")
+    return "\n".join(out)
+
+
 def fit_table(rows) -> str:
     base = next((r for r in rows if r["method"].startswith("scipy") and "per_curve_s" in r), None)  # default trf
     out = ["| method | curves | compile (s) | run (s) | per curve (us) | converged | max steps | speed-up vs scipy default (trf) loop |",
@@ -139,11 +196,16 @@ def run(*, quick=False, sections=("fit",), out_dir="bench_out") -> dict:
     out.mkdir(parents=True, exist_ok=True)
     report = {"machine": machine_description(), "quick": quick}
     md = [f"Machine: {report['machine']}", ""]
-    with tqdm(total=5 * ("fit" in sections), desc="bench", unit="step") as bar:
+    with tqdm(total=5 * ("fit" in sections) + 3 * ("devices" in sections), desc="bench", unit="step") as bar:
         if "fit" in sections:
             rows = bench_fit(quick=quick, progress=bar)
             report["fit"] = rows
             md += ["### Index fits: 90 angles per curve, float64, noise 1e-3", "", fit_table(rows), ""]
+        if "devices" in sections:
+            rows = bench_devices(quick=quick, progress=bar)
+            report["devices"] = rows
+            md += ["### Sharding over devices (forced host devices sharing this machine's cores)", "",
+                   devices_table(rows), ""]
     text = "\n".join(md)
     (out / "bench.md").write_text(text + "\n")
     (out / "bench.json").write_text(json.dumps(report, indent=2))

@@ -286,7 +286,16 @@ def _is_concrete(*xs):
 
 
 def check_curves(theta, R, sigma, *, n_params: int, where: str = "") -> None:
-    """Value checks on concrete data, before any solving: a clear ValueError for degenerate input."""
+    """Value checks on concrete data, before any solving: a clear ValueError for degenerate input.
+
+    A `jax.Array` (possibly sharded over devices or hosts) is checked with reductions where it
+    lives; only when a check fails is the offending entry located on the host."""
+    if isinstance(R, jax.Array) and R.ndim >= 1 and np.ndim(theta) == 1 and R.shape[-1] == np.shape(theta)[0]:
+        finite = bool(jnp.all(jnp.isfinite(R)))
+        const = bool(jnp.any(jnp.max(R, axis=-1) == jnp.min(R, axis=-1)))
+        if finite and not const and R.shape[-1] >= n_params + 1 and sigma is None:
+            check_curves(theta, np.zeros((1, R.shape[-1])) + np.linspace(0, 1, R.shape[-1]), None, n_params=n_params, where=where)
+            return
     th = np.asarray(theta, dtype=np.float64)
     Rv = np.asarray(R, dtype=np.float64)
     at = f" in {where}" if where else ""
@@ -401,7 +410,7 @@ def fit_eta(theta, R, *, eta1=1.0, polarization="unpolarized", sigma=None, init=
     if retry and _is_concrete(Rf, w):
         # Gauss-Newton is fast but undamped: refit whatever it did not converge on with
         # Levenberg-Marquardt, in one more batched call over just those curves.
-        bad = np.flatnonzero(~np.asarray(res.converged))
+        bad = np.flatnonzero(~np.asarray(res.converged)) if res.converged.is_fully_addressable else np.array([], int)
         if bad.size:
             lm = optx.LevenbergMarquardt(rtol=_tol(dt), atol=_tol(dt))
             sub = _fit_batch(theta, Rf[bad], w[bad], eta1, y_init[bad], solver=lm, use_init=use_init, **kw)

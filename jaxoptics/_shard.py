@@ -1,0 +1,92 @@
+"""Scaling across devices with JAX's own sharding (no engine of our own).
+
+Every kernel is elementwise over its batch axes, so an array sharded along the batch axis flows
+through it (under `jit`, or eagerly) and comes out with the same sharding: XLA's partitioner does
+the work, nothing is gathered. `fit_eta` likewise fits a sharded batch of curves where the curves
+live. The helpers here take care of the two chores: building a one-dimensional mesh over the
+available devices, and padding a batch whose size is not a multiple of the device count (the
+padding is removed again from the results).
+
+Multi-host: call `jax.distributed.initialize()` on every process first; `jax.devices()` then
+lists the devices of all hosts and the same code runs unchanged (each process passes the whole
+logical batch, or builds a global array with `jax.make_array_from_process_local_data`).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+AXIS = "batch"
+
+
+def batch_mesh(devices=None) -> Mesh:
+    """A one-dimensional mesh named `"batch"` over `devices` (default: all of `jax.devices()`)."""
+    devices = jax.devices() if devices is None else list(devices)
+    return Mesh(np.asarray(devices), (AXIS,))
+
+
+def batch_sharding(mesh: Mesh, ndim: int) -> NamedSharding:
+    """Sharding of an array along its first axis over the mesh's batch axis (others replicated)."""
+    return NamedSharding(mesh, P(AXIS, *([None] * (ndim - 1))))
+
+
+def shard_batch(x, mesh: Mesh | None = None):
+    """Pad `x` along axis 0 to a multiple of the device count (repeating its last entry, so the
+    padding is valid data) and place it sharded along that axis. Returns `(sharded, n)` with `n` the
+    original length."""
+    mesh = batch_mesh() if mesh is None else mesh
+    x = jnp.asarray(x)
+    n = x.shape[0]
+    k = mesh.devices.size
+    pad = (-n) % k
+    if pad:
+        x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)], axis=0)
+    return jax.device_put(x, batch_sharding(mesh, x.ndim)), n
+
+
+def _trim(out, n, total, keep_padding):
+    if total == n or keep_padding:
+        return out
+    return jax.tree_util.tree_map(lambda y: y[:n] if jnp.ndim(y) and y.shape[0] == total else y, out)
+
+
+def sharded_map(fn, *arrays, mesh: Mesh | None = None, broadcast=(), keep_padding=False):
+    """Apply an elementwise-over-axis-0 function to arrays sharded along their first axis.
+
+    **Arguments:** `fn(*arrays, *broadcast)`; `arrays` share their first (batch) axis, of any
+    length; `broadcast` are passed to every shard whole (replicated), e.g. shared angles.
+
+    **Returns:** `fn`'s outputs (any pytree), sharded along the batch axis. A length that is not a
+    multiple of the device count is padded (with copies of the last entry) for the computation;
+    with `keep_padding=False` (default) the padding is removed from the outputs, which JAX cannot
+    shard unevenly, so those come back replicated; `keep_padding=True` keeps them sharded and
+    padded (the first `n` rows are the results).
+    """
+    mesh = batch_mesh() if mesh is None else mesh
+    placed = [shard_batch(a, mesh) for a in arrays]
+    n = placed[0][1]
+    if any(m != n for _, m in placed):
+        raise ValueError(f"arrays must share their first axis, got lengths {[m for _, m in placed]}")
+    out = jax.jit(fn)(*[a for a, _ in placed], *broadcast)
+    return _trim(out, n, placed[0][0].shape[0], keep_padding)
+
+
+def fit_eta_sharded(theta, R, *, mesh: Mesh | None = None, keep_padding=False, **kwargs):
+    """`fit_eta` on a batch of curves `R` (shape `(B, m)`) spread over the devices of `mesh`.
+
+    Pads the batch to a multiple of the device count (with copies of the last curve), fits all
+    curves where they live in one compiled call, and returns a `FitResult` of batch size `B`.
+    Keyword arguments are those of `fit_eta`; `sigma`, if an array, must be shared or `(m,)`.
+    `keep_padding` as in `sharded_map`.
+    """
+    from ._fit import fit_eta
+
+    mesh = batch_mesh() if mesh is None else mesh
+    R = jnp.asarray(R)
+    if R.ndim != 2:
+        raise ValueError(f"R must have shape (B, m) for fit_eta_sharded, got {R.shape}")
+    Rs, n = shard_batch(R, mesh)
+    return _trim(fit_eta(theta, Rs, **kwargs), n, Rs.shape[0], keep_padding)
