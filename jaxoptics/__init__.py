@@ -37,3 +37,9 @@ from ._shard import batch_mesh as batch_mesh
 from ._shard import fit_eta_sharded as fit_eta_sharded
 from ._shard import shard_batch as shard_batch
 from ._shard import sharded_map as sharded_map
+from ._interface import Hit as Hit
+from ._interface import Interaction as Interaction
+from ._interface import InterfaceSpec as InterfaceSpec
+from ._interface import SceneSpec as SceneSpec
+from ._interface import interface as interface
+from ._interface import scene_interface as scene_interface

@@ -200,8 +200,9 @@ class _Terms(NamedTuple):
     valid: jnp.ndarray
 
 
-def _terms(cos_i, eta1, eta2) -> _Terms:
-    """Shared intermediates; `eta2` real (fast real path) or complex."""
+def _terms(cos_i, eta1, eta2, sin_sq=None) -> _Terms:
+    """Shared intermediates; `eta2` real (fast real path) or complex. `sin_sq`, if given, is
+    sin^2 of the angle of incidence from a cross product (see `_kt_squared`)."""
     c = _abs_cos(cos_i)
     if jnp.iscomplexobj(eta2):
         valid = _positive_finite(eta1) & _valid_index(eta2) & (c < jnp.inf)
@@ -211,7 +212,7 @@ def _terms(cos_i, eta1, eta2) -> _Terms:
     else:
         valid = _positive_finite(eta1) & _positive_finite(eta2) & (c < jnp.inf)
     ki = eta1 * c
-    q, diff, m = _kt_squared(ki, eta1, eta2)
+    q, diff, m = _kt_squared(ki, eta1, eta2, sin_sq)
     if jnp.iscomplexobj(q):
         # the complex square root is singular at 0 (the critical angle of an index with k == 0)
         kt = sqrt_where(q, q != 0)

@@ -1,0 +1,275 @@
+"""A fused interface kernel specialized to the scene, and its material-level form.
+
+At a ray hit a renderer needs some of: the reflected and transmitted directions, the TIR mask,
+reflectance and transmittance. `interface` computes them in one pass sharing `cos_i`, `k_t` and
+the rest, and a static, hashable `InterfaceSpec` says what the scene needs. Outputs that are not
+asked for are not computed (they are `None`, and the traced program never contains them), and the
+options select cheaper formulas where the scene allows (Schlick, no TIR, no input checks).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from . import _validate as V
+from ._fresnel import _abs2, _positive_finite, _power_pair, _r_amplitudes, _schlick_from_r0, _terms, _valid_index
+from ._refract import METHODS, _dot, _rsqrt_positive, _valid_vectors, _vectors
+
+OUTPUTS = ("r", "t", "tir", "R", "T", "R_s", "R_p")
+FRESNEL_MODELS = ("exact", "schlick", "schlick_tir")
+
+
+class InterfaceSpec(NamedTuple):
+    """What a scene needs at an interface (static and hashable: it selects the compiled program).
+
+    **Fields:**
+
+    - `outputs`: names among `"r"` (reflected direction), `"t"` (transmitted direction), `"tir"`,
+      `"R"`, `"T"` (unpolarized), `"R_s"`, `"R_p"`. Default: `("r", "t", "tir", "R", "T")`.
+    - `fresnel`: `"exact"`, `"schlick"` or `"schlick_tir"`.
+    - `method`: the refraction formulation of `refract`.
+    - `complex_index`: `eta2` may be complex (a conductor); then there is no transmitted direction.
+    - `tir_possible`: `False` promises `eta1 <= eta2` everywhere (every ray enters a denser
+      medium): the TIR selects are left out.
+    - `check_inputs`: `False` leaves out the NaN-for-invalid-input masks (the caller guarantees
+      unit-length non-zero vectors, finite inputs and positive indices).
+    """
+
+    outputs: tuple = ("r", "t", "tir", "R", "T")
+    fresnel: str = "exact"
+    method: str = "degreve"
+    complex_index: bool = False
+    tir_possible: bool = True
+    check_inputs: bool = True
+
+    def validate(self):
+        bad = [o for o in self.outputs if o not in OUTPUTS]
+        if bad:
+            raise ValueError(f"unknown outputs {bad}; choose among {OUTPUTS}")
+        if self.fresnel not in FRESNEL_MODELS:
+            raise ValueError(f"fresnel must be one of {FRESNEL_MODELS}, got {self.fresnel!r}")
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
+        if self.complex_index and ("t" in self.outputs or self.fresnel != "exact"):
+            raise ValueError("a complex index (conductor) has no transmitted direction and uses the exact Fresnel model")
+        if self.fresnel != "exact" and {"R_s", "R_p"} & set(self.outputs):
+            raise ValueError("R_s and R_p need fresnel='exact'")
+        return self
+
+
+class Interaction(NamedTuple):
+    """Outputs of `interface`; fields not asked for in the spec are `None`."""
+
+    r: jax.Array | None = None
+    t: jax.Array | None = None
+    tir: jax.Array | None = None
+    R: jax.Array | None = None
+    T: jax.Array | None = None
+    R_s: jax.Array | None = None
+    R_p: jax.Array | None = None
+
+
+DEFAULT_SPEC = InterfaceSpec()
+
+
+def interface(i, n, eta1, eta2, *, spec: InterfaceSpec = DEFAULT_SPEC) -> Interaction:
+    r"""Everything a renderer needs at a hit, in one pass, specialized by `spec`.
+
+    **Arguments:** `i` (toward the surface), `n` (either orientation), `(..., 3)`; `eta1`, `eta2`
+    indices broadcasting against the leading axes (`eta2` complex with `complex_index=True`);
+    `spec` an `InterfaceSpec`.
+
+    **Returns:** an `Interaction`. Values equal those of `reflect`, `refract`, `fresnel_rt`,
+    `fresnel_sp`, `schlick` and `schlick_tir` (same formulas, shared intermediates; `refract`'s
+    conventions: `t` is the reflected direction under TIR).
+
+    **Edge cases:** as the separate kernels (NaN for invalid elements when `check_inputs`).
+    With `tir_possible=False` and `eta1 > eta2` somewhere the results there are unspecified.
+    """
+    spec = spec.validate()
+    want = set(spec.outputs)
+    eta1 = V.as_index(eta1, "eta1", allow_complex=False)
+    eta2 = V.as_index(eta2, "eta2", allow_complex=spec.complex_index)
+    dt = V.float_dtype(i, n, eta1, eta2)
+    i, n, batch = _vectors(i, n, ("eta1", eta1), ("eta2", eta2))
+    i, n = i.astype(dt), n.astype(dt)
+    e1 = jnp.broadcast_to(jnp.asarray(eta1, dt), batch)
+    e2 = jnp.asarray(eta2, V.complex_dtype(dt) if spec.complex_index else dt)
+    e2 = jnp.broadcast_to(e2, batch)
+
+    if spec.check_inputs:
+        valid = _valid_vectors(i, n) & _positive_finite(e1)
+        valid &= _valid_index(e2) if spec.complex_index else _positive_finite(e2)
+        i = i * _rsqrt_positive(_dot(i, i))[..., None]
+        n = n * _rsqrt_positive(_dot(n, n))[..., None]
+    d = _dot(i, n)
+    flip = d > 0
+    nf = jnp.where(flip[..., None], -n, n)
+    c = jnp.where(flip, d, -d)
+    if spec.check_inputs:
+        c = jnp.where(c > 1, 1, c)
+    out = {}
+    if "r" in want or ("t" in want and spec.tir_possible):
+        out["r"] = i + 2 * c[..., None] * nf
+
+    need_terms = bool(want & {"t", "tir"}) or (spec.fresnel != "schlick" and bool(want & {"R", "T", "R_s", "R_p"}))
+    cr = s2 = None
+    if ("t" in want or "tir" in want) and spec.method == "degreve" and spec.tir_possible:
+        cr = jnp.cross(i, n)
+        s2 = _dot(cr, cr)
+    tm = _terms(c, e1, e2, s2) if need_terms else None
+    tir = tm.tir if (tm is not None and spec.tir_possible) else None
+
+    if "t" in want:
+        e1v, e2v = e1[..., None], e2[..., None]
+        if spec.method == "degreve":
+            den = tm.ki + tm.kt
+            ok = den > 0
+            coef = jnp.where(ok, -tm.diff / (e2 * jnp.where(ok, den, 1)), 0)[..., None]
+            t = (e1v / e2v) * i + coef * nf
+            if spec.tir_possible:
+                i_tan = jnp.cross(n, cr)
+                t = jnp.where((e1 > e2)[..., None], (e1v * i_tan - tm.kt[..., None] * nf) / e2v, t)
+        elif spec.method == "oliveira":
+            t = i - nf
+            t = t / jnp.sqrt(jnp.maximum(_dot(t, t), jnp.asarray(jnp.finfo(dt).tiny, dt)))[..., None]
+        else:  # heckbert, bec: cos_t from cos_i, as in refract
+            from ._fresnel import sqrt_where
+
+            r_ = e1 / e2
+            w = r_ * c
+            k2 = 1 - r_ * r_ * (1 - c * c) if spec.method == "heckbert" else 1 + (w - r_) * (w + r_)
+            t = r_[..., None] * i + (w - sqrt_where(k2, k2 > 0))[..., None] * nf
+        if spec.tir_possible:
+            t = jnp.where(tir[..., None], out["r"], t)
+        out["t"] = t
+    if "tir" in want:
+        out["tir"] = tir if tir is not None else jnp.zeros(batch, bool)
+
+    if want & {"R", "T", "R_s", "R_p"}:
+        if spec.fresnel == "exact":
+            r_s, r_p = _r_amplitudes(tm)
+            if spec.complex_index:
+                Ts = 4 * jnp.real(tm.ki) * jnp.real(tm.kt) / _abs2(tm.den_s)
+                Tp = 4 * e1 * e1 * jnp.real(tm.ki) * jnp.real(e2 * e2 * jnp.conj(tm.kt)) / _abs2(tm.den_p)
+            else:
+                kk4 = 4 * tm.ki * tm.kt
+                Ts = kk4 / tm.den_s / tm.den_s
+                Tp = (kk4 * (e1 * e2) ** 2) / tm.den_p / tm.den_p
+            tm_sel = tm if spec.tir_possible else tm._replace(tir=jnp.zeros_like(tm.ok))
+            R_s, T_s = _power_pair(tm_sel, _abs2(r_s), Ts)
+            R_p, T_p = _power_pair(tm_sel, _abs2(r_p), Tp)
+            out.update(R=0.5 * (R_s + R_p), T=0.5 * (T_s + T_p), R_s=R_s, R_p=R_p)
+        else:
+            a = (e1 - e2) / (e1 + e2)
+            r0 = a * a
+            if spec.fresnel == "schlick_tir":
+                cos_t = tm.kt / e2
+                cu = jnp.where(e1 > e2, cos_t, c)
+                R = _schlick_from_r0(cu, r0)
+                if spec.tir_possible:
+                    R = jnp.where(tir, 1, R)
+            else:
+                R = _schlick_from_r0(c, r0)
+            out.update(R=R, T=1 - R)
+    if spec.check_inputs:
+        for k, v in out.items():
+            if k == "tir":
+                out[k] = v & valid
+            else:
+                out[k] = jnp.where(valid[..., None] if v.ndim > valid.ndim else valid, v, jnp.nan)
+    return Interaction(**{k: v for k, v in out.items() if k in want})
+
+
+# ---- the material-level form -----------------------------------------------------------------
+
+MATERIAL_KINDS = ("mirror", "dielectric", "conductor", "thin_dielectric")
+
+
+class SceneSpec(NamedTuple):
+    """The kinds of material a scene contains (static). The compiled kernel has branches for these
+    kinds only.
+
+    **Fields:** `kinds`: a tuple among `"mirror"` (R = 1), `"dielectric"` (exact Fresnel, refraction
+    with TIR), `"conductor"` (complex index, R from the exact formulas, no transmission),
+    `"thin_dielectric"` (a thin sheet: incoherent sum of the multiple internal reflections,
+    `R' = 2R / (1 + R)`, transmitted ray continues undeviated); `fresnel` and `method` as in
+    `InterfaceSpec` for the dielectric branch; `check_inputs`.
+    """
+
+    kinds: tuple = ("dielectric",)
+    fresnel: str = "exact"
+    method: str = "degreve"
+    check_inputs: bool = True
+
+
+class Hit(NamedTuple):
+    """Per-hit result of `scene_interface`: reflected and transmitted directions, the energy
+    fractions R (reflected) and T (transmitted; 0 for mirrors and conductors) and the TIR mask."""
+
+    r: jax.Array
+    t: jax.Array
+    R: jax.Array
+    T: jax.Array
+    tir: jax.Array
+
+
+def scene_interface(i, n, kind, eta1, eta2, *, scene: SceneSpec = SceneSpec()) -> Hit:
+    r"""The interface at each hit of a scene with several kinds of material.
+
+    **Arguments:** `i`, `n` `(..., 3)`; `kind` `(...)` integer index into `scene.kinds` per hit;
+    `eta1` real `(...)`; `eta2` `(...)` (complex for conductors, its real part used for
+    dielectrics); `scene` a `SceneSpec`.
+
+    **Returns:** a `Hit`. Each present kind is evaluated and selected by `kind`; kinds not in the
+    scene are not compiled at all. Hits whose `kind` is out of range get NaN.
+    """
+    kinds = tuple(scene.kinds)
+    bad = [k for k in kinds if k not in MATERIAL_KINDS]
+    if bad or not kinds:
+        raise ValueError(f"scene kinds must be a non-empty tuple among {MATERIAL_KINDS}, got {kinds}")
+    kind = jnp.asarray(kind)
+    if not jnp.issubdtype(kind.dtype, jnp.integer):
+        raise ValueError(f"kind must be an integer array (an index into scene.kinds), got dtype {kind.dtype}")
+    dt = V.float_dtype(i, n, eta1, eta2)
+    e2c = jnp.asarray(eta2)
+    e2r = jnp.real(e2c).astype(dt) if jnp.iscomplexobj(e2c) else e2c.astype(dt)
+    results = []
+    for k in kinds:
+        if k == "mirror":
+            r = interface(i, n, eta1, e2r, spec=InterfaceSpec(outputs=("r",), check_inputs=scene.check_inputs)).r
+            one = jnp.ones(r.shape[:-1], dt)
+            results.append(Hit(r, r, one, jnp.zeros_like(one), jnp.zeros(one.shape, bool)))
+        elif k == "conductor":
+            e2k = e2c if jnp.iscomplexobj(e2c) else e2c.astype(V.complex_dtype(dt))
+            x = interface(i, n, eta1, e2k, spec=InterfaceSpec(outputs=("r", "R"), complex_index=True,
+                                                              check_inputs=scene.check_inputs))
+            results.append(Hit(x.r, x.r, x.R, jnp.zeros_like(x.R), jnp.zeros(x.R.shape, bool)))
+        elif k == "dielectric":
+            x = interface(i, n, eta1, e2r, spec=InterfaceSpec(("r", "t", "tir", "R", "T"), scene.fresnel, scene.method,
+                                                              check_inputs=scene.check_inputs))
+            results.append(Hit(x.r, x.t, x.R, x.T, x.tir))
+        else:  # thin dielectric sheet: both faces, light bouncing inside adds incoherently
+            x = interface(i, n, eta1, e2r, spec=InterfaceSpec(("r", "R"), scene.fresnel, scene.method,
+                                                              tir_possible=False, check_inputs=scene.check_inputs))
+            Rt = 2 * x.R / (1 + x.R)
+            results.append(Hit(x.r, jnp.broadcast_to(i, x.r.shape).astype(dt), Rt, 1 - Rt, jnp.zeros(Rt.shape, bool)))
+    if len(results) == 1:
+        out = results[0]
+        inside = kind == 0
+    else:
+        idx = jnp.clip(kind, 0, len(kinds) - 1)
+        out = jax.tree_util.tree_map(lambda *xs: _select(idx, xs), *results)
+        inside = (kind >= 0) & (kind < len(kinds))
+    nan = lambda v: jnp.where(inside[..., None] if v.ndim > inside.ndim else inside, v, jnp.nan)
+    return Hit(nan(out.r), nan(out.t), nan(out.R), nan(out.T), out.tir & inside)
+
+
+def _select(idx, xs):
+    stacked = jnp.stack(xs, axis=0)
+    ix = idx.reshape((1,) + idx.shape + (1,) * (stacked.ndim - 1 - idx.ndim))
+    ix = jnp.broadcast_to(ix, (1,) + stacked.shape[1:])
+    return jnp.take_along_axis(stacked, ix, axis=0)[0]

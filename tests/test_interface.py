@@ -1,0 +1,101 @@
+"""The fused, scene-specialized interface kernel: equal to the separate kernels, and only what
+the spec asks for is computed."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxoptics as jo
+
+
+def _rays(n=2000, seed=0):
+    rng = np.random.default_rng(seed)
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    a = np.cross(nrm, rng.normal(size=(n, 3)))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    th = rng.uniform(0, np.pi / 2, n)
+    i = np.sin(th)[:, None] * a - np.cos(th)[:, None] * nrm
+    return i, nrm * rng.choice([-1.0, 1.0], size=(n, 1)), rng.uniform(0.6, 2.5, n)
+
+
+def test_full_interface_equals_separate_kernels():
+    i, n, e2 = _rays()
+    x = jax.jit(lambda i, n, e2: jo.interface(i, n, 1.3, e2))(i, n, e2)
+    t, tir = jax.jit(lambda i, n, e2: jo.refract(i, n, 1.3, e2))(i, n, e2)
+    np.testing.assert_array_equal(np.asarray(x.tir), np.asarray(tir))
+    np.testing.assert_allclose(np.asarray(x.t), np.asarray(t), atol=1e-15)
+    np.testing.assert_allclose(np.asarray(x.r), np.asarray(jo.reflect(i, n)), atol=4e-16)
+    # R and T against fresnel_rt at the same cosine, away from the critical angle's rounding
+    c = np.abs(np.einsum("ij,ij->i", i, n))
+    R, T = jo.fresnel_rt(c, 1.3, e2)
+    away = np.abs(1.3 * np.sqrt(1 - c**2) - e2) > 1e-6
+    np.testing.assert_allclose(np.asarray(x.R)[away], np.asarray(R)[away], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(x.T)[away], np.asarray(T)[away], rtol=1e-12, atol=1e-15)
+    assert x.R_s is None and x.R_p is None
+
+
+@pytest.mark.parametrize("fresnel,ref", [("schlick", jo.schlick), ("schlick_tir", jo.schlick_tir)])
+def test_schlick_models(fresnel, ref):
+    i, n, e2 = _rays(seed=1)
+    x = jo.interface(i, n, 1.3, e2, spec=jo.InterfaceSpec(outputs=("R", "T"), fresnel=fresnel))
+    c = np.abs(np.einsum("ij,ij->i", i, n))
+    away = np.abs(1.3 * np.sqrt(1 - c**2) - e2) > 1e-6
+    np.testing.assert_allclose(np.asarray(x.R)[away], np.asarray(ref(c, 1.3, e2))[away], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(x.R + x.T), 1, atol=1e-15)
+
+
+def test_only_requested_outputs_are_traced():
+    i, n, e2 = _rays(100)
+    spec = jo.InterfaceSpec(outputs=("R",))
+    x = jo.interface(i, n, 1.0, e2, spec=spec)
+    assert x.t is None and x.r is None and x.tir is None
+    def flops(f):
+        cost = jax.jit(f).lower(i, n, e2).compile().cost_analysis()
+        cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+        return cost["flops"]
+
+    full = flops(lambda i, n, e: jo.interface(i, n, 1.0, e))
+    only_r = flops(lambda i, n, e: jo.interface(i, n, 1.0, e, spec=spec))
+    lean = flops(lambda i, n, e: jo.interface(i, n, 1.0, e, spec=jo.InterfaceSpec(outputs=("R",), fresnel="schlick",
+                                                                                     check_inputs=False)))
+    assert lean < only_r < full, (lean, only_r, full)
+    no_tir = jo.InterfaceSpec(outputs=("t", "R"), tir_possible=False, check_inputs=False)
+    e_dense = 1.0 + e2  # every ray enters a denser medium
+    y = jo.interface(i, n, 1.0, e_dense, spec=no_tir)
+    z = jo.interface(i, n, 1.0, e_dense)
+    np.testing.assert_allclose(np.asarray(y.t), np.asarray(z.t), atol=1e-15)
+    np.testing.assert_allclose(np.asarray(y.R), np.asarray(z.R), atol=1e-15)
+
+
+def test_conductor_and_polarized_outputs():
+    i, n, e2 = _rays(500, seed=2)
+    eta = jax.lax.complex(jnp.asarray(e2), 2.0 * jnp.asarray(e2))
+    x = jo.interface(i, n, 1.0, eta, spec=jo.InterfaceSpec(outputs=("r", "R", "R_s", "R_p"), complex_index=True))
+    c = np.abs(np.einsum("ij,ij->i", i, n))
+    R_s, R_p = jo.fresnel_sp(c, 1.0, eta)
+    np.testing.assert_allclose(np.asarray(x.R_s), np.asarray(R_s), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(x.R_p), np.asarray(R_p), rtol=1e-12)
+    with pytest.raises(ValueError, match="no transmitted direction"):
+        jo.interface(i, n, 1.0, eta, spec=jo.InterfaceSpec(outputs=("t",), complex_index=True))
+    with pytest.raises(ValueError, match="unknown outputs"):
+        jo.interface(i, n, 1.0, e2, spec=jo.InterfaceSpec(outputs=("X",)))
+
+
+def test_scene_interface_selects_by_material():
+    i, n, e2 = _rays(1200, seed=3)
+    kinds = ("mirror", "dielectric", "conductor", "thin_dielectric")
+    k = np.arange(1200) % 4
+    eta = e2 * (1 + 0.5j)
+    h = jax.jit(lambda i, n, k, e: jo.scene_interface(i, n, k, 1.0, e, scene=jo.SceneSpec(kinds=kinds)))(i, n, k, eta)
+    c = np.abs(np.einsum("ij,ij->i", i, n))
+    np.testing.assert_array_equal(np.asarray(h.R)[k == 0], 1.0)
+    np.testing.assert_allclose(np.asarray(h.R)[k == 1], np.asarray(jo.fresnel(c, 1.0, e2))[k == 1], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(h.R)[k == 2], np.asarray(jo.fresnel(c, 1.0, eta))[k == 2], rtol=1e-12)
+    R1 = np.asarray(jo.fresnel(c, 1.0, e2))[k == 3]
+    np.testing.assert_allclose(np.asarray(h.R)[k == 3], 2 * R1 / (1 + R1), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(h.t)[k == 3], i[k == 3], atol=1e-15)
+    np.testing.assert_allclose(np.asarray(h.R + h.T)[k != 2], 1, atol=1e-15)
+    bad = jo.scene_interface(i[:2], n[:2], np.array([7, 1]), 1.0, e2[:2], scene=jo.SceneSpec(kinds=("mirror", "dielectric")))
+    assert np.isnan(float(bad.R[0])) and np.isfinite(float(bad.R[1]))
