@@ -126,7 +126,7 @@ def med(f, k=5):
         t = time.perf_counter(); jax.block_until_ready(f()); ts.append(time.perf_counter() - t)
     return statistics.median(ts)
 n = 1_000_000 if quick else 10_000_000
-c, _ = jo.shard_batch(jnp.linspace(0.0, 1.0, n, dtype=jnp.float32), mesh)
+c, _ = jo.shard_batch(jnp.linspace(0.0, 1.0, n, dtype=jnp.float32), mesh=mesh)
 f = jax.jit(lambda c: jo.fresnel(c, 1.0, 1.5))
 t_k = med(lambda: f(c))
 print(json.dumps(dict(devices=len(jax.devices()), fresnel_elements=n, fresnel_s=t_k)))

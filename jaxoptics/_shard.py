@@ -22,7 +22,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 AXIS = "batch"
 
 
-def batch_mesh(devices=None) -> Mesh:
+def batch_mesh(*, devices=None) -> Mesh:
     """A one-dimensional mesh named `"batch"` over `devices` (default: all of `jax.devices()`)."""
     devices = jax.devices() if devices is None else list(devices)
     return Mesh(np.asarray(devices), (AXIS,))
@@ -33,7 +33,7 @@ def batch_sharding(mesh: Mesh, ndim: int) -> NamedSharding:
     return NamedSharding(mesh, P(AXIS, *([None] * (ndim - 1))))
 
 
-def shard_batch(x, mesh: Mesh | None = None):
+def shard_batch(x, *, mesh: Mesh | None = None):
     """Pad `x` along axis 0 to a multiple of the device count (repeating its last entry, so the
     padding is valid data) and place it sharded along that axis. Returns `(sharded, n)` with `n` the
     original length."""
@@ -66,7 +66,7 @@ def sharded_map(fn, *arrays, mesh: Mesh | None = None, broadcast=(), keep_paddin
     padded (the first `n` rows are the results).
     """
     mesh = batch_mesh() if mesh is None else mesh
-    placed = [shard_batch(a, mesh) for a in arrays]
+    placed = [shard_batch(a, mesh=mesh) for a in arrays]
     n = placed[0][1]
     if any(m != n for _, m in placed):
         raise ValueError(f"arrays must share their first axis, got lengths {[m for _, m in placed]}")
@@ -88,5 +88,5 @@ def fit_eta_sharded(theta, R, *, mesh: Mesh | None = None, keep_padding=False, *
     R = jnp.asarray(R)
     if R.ndim != 2:
         raise ValueError(f"R must have shape (B, m) for fit_eta_sharded, got {R.shape}")
-    Rs, n = shard_batch(R, mesh)
+    Rs, n = shard_batch(R, mesh=mesh)
     return _trim(fit_eta(theta, Rs, **kwargs), n, Rs.shape[0], keep_padding)

@@ -20,7 +20,7 @@ SCRIPT = textwrap.dedent('''
 
     # kernels: sharded in, sharded out, equal to the single-device result
     c = rng.uniform(0, 1, 4000)
-    cs, n = jo.shard_batch(c, mesh)
+    cs, n = jo.shard_batch(c, mesh=mesh)
     for f in (lambda c: jo.fresnel(c, 1.0, 1.5), lambda c: jo.fresnel_rt(c, 1.5, 1.0)[1],
               lambda c: jo.fresnel_amplitudes(c, 1.0, 0.2 + 3j).r_p):
         for g in (f, jax.jit(f)):
@@ -29,7 +29,7 @@ SCRIPT = textwrap.dedent('''
             assert out.sharding.spec == P("batch"), out.sharding
             assert np.allclose(np.asarray(out)[:4000], np.asarray(single), rtol=4e-16, atol=1e-300)
     i = rng.normal(size=(4000, 3)); i /= np.linalg.norm(i, axis=1, keepdims=True)
-    ish, _ = jo.shard_batch(i, mesh)
+    ish, _ = jo.shard_batch(i, mesh=mesh)
     t, tir = jax.jit(lambda i: jo.refract(i, jnp.array([0.0, 0.0, 1.0]), 1.5, 1.0))(ish)
     assert t.sharding.spec[0] == "batch" and tir.sharding.spec == P("batch")
     t1, _ = jax.jit(lambda i: jo.refract(i, jnp.array([0.0, 0.0, 1.0]), 1.5, 1.0))(jnp.asarray(i))
@@ -51,7 +51,7 @@ SCRIPT = textwrap.dedent('''
     etas = np.linspace(1.1, 3.0, 403)
     R = np.asarray(jo.synthetic_reflectance(jax.random.PRNGKey(1), jnp.asarray(etas), jnp.asarray(th), noise=1e-3))
     single = jo.fit_eta(th, R)
-    Rs, _ = jo.shard_batch(R[:400], mesh)
+    Rs, _ = jo.shard_batch(R[:400], mesh=mesh)
     res = jo.fit_eta(th, Rs)
     assert res.eta.sharding.spec == P("batch") and res.stderr.sharding.spec == P("batch")
     assert np.allclose(np.asarray(res.eta), np.asarray(single.eta[:400]), rtol=1e-12, atol=0)
