@@ -144,7 +144,7 @@ def _plot_fits(fits, args, title):
 def _bench(args) -> int:
     from ._bench import run
 
-    run(quick=args.quick, sections=tuple(args.sections.split(",")), out_dir=args.out)
+    run(quick=args.quick, sections=tuple(args.sections.split(",")), out_dir=args.out, mitsuba=not args.no_mitsuba)
     return 0
 
 
@@ -173,7 +173,8 @@ def main(argv=None) -> int:
     p = sub.add_parser("bench", help="speed and error, side by side with peers, on this machine")
     p.add_argument("--quick", action="store_true", help="a reduced run (about a minute)")
     p.add_argument("--out", default="bench_out", help="directory for bench.md, bench.json and the charts")
-    p.add_argument("--sections", default="fit,devices", help="comma-separated: fit, devices")
+    p.add_argument("--sections", default="kernels,fit,devices", help="comma-separated: kernels, fit, devices")
+    p.add_argument("--no-mitsuba", action="store_true", help="skip Mitsuba 3 even if installed")
     p.set_defaults(func=_bench)
     p = sub.add_parser("stress", help="numerical stress test of every kernel")
     p.add_argument("--n", type=int, default=1_000_000, help="inputs per dtype (default 10^6)")

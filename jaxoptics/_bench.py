@@ -180,7 +180,7 @@ def fit_table(rows) -> str:
     return "\n".join(out)
 
 
-def run(*, quick=False, sections=("fit",), out_dir="bench_out") -> dict:
+def run(*, quick=False, sections=("kernels", "fit", "devices"), out_dir="bench_out", sizes=None, mitsuba=True) -> dict:
     from tqdm.auto import tqdm
 
     import jax
@@ -190,7 +190,17 @@ def run(*, quick=False, sections=("fit",), out_dir="bench_out") -> dict:
     out.mkdir(parents=True, exist_ok=True)
     report = {"machine": machine_description(), "quick": quick}
     md = [f"Machine: {report['machine']}", ""]
-    with tqdm(total=5 * ("fit" in sections) + 3 * ("devices" in sections), desc="bench", unit="step") as bar:
+    total = 5 * ("fit" in sections) + 3 * ("devices" in sections) + 19 * ("kernels" in sections)
+    with tqdm(total=total, desc="bench", unit="step") as bar:
+        if "kernels" in sections:
+            rows = bench_kernels(quick=quick, progress=bar, sizes=sizes, mitsuba=mitsuba)
+            report["kernels"] = rows
+            size = max(r["n"] for r in rows if r.get("n"))
+            pareto_chart(rows, size, out / "pareto.png")
+            md += [f"### Kernels at N = {size:,} (eta1 = 1.5, eta2 = 1: TIR included; median of repeats)", "",
+                   kernels_table(rows, size), "", "### Throughput against batch size", "",
+                   scaling_table(rows, sorted({r["n"] for r in rows if r.get("n")})), "",
+                   f"Pareto chart: {out / 'pareto.png'}", ""]
         if "fit" in sections:
             rows = bench_fit(quick=quick, progress=bar)
             report["fit"] = rows
@@ -206,3 +216,252 @@ def run(*, quick=False, sections=("fit",), out_dir="bench_out") -> dict:
     print(text)
     print(f"\nwritten: {out / 'bench.md'}, {out / 'bench.json'}")
     return report
+
+
+# ---- kernels: speed against error ---------------------------------------------------------------
+
+
+def _naive_jax_fresnel(c, e1, e2):
+    """The textbook formula transcribed directly (the naive peer)."""
+    import jax.numpy as jnp
+
+    sin2 = 1 - c * c
+    ct2 = 1 - (e1 / e2) ** 2 * sin2
+    ct = jnp.sqrt(jnp.maximum(ct2, 0))
+    rs = (e1 * c - e2 * ct) / (e1 * c + e2 * ct)
+    rp = (e2 * c - e1 * ct) / (e2 * c + e1 * ct)
+    return jnp.where(ct2 < 0, 1.0, 0.5 * (rs * rs + rp * rp))
+
+
+def _schlick_pow(c, e1, e2):
+    import jax.numpy as jnp
+
+    r0 = ((e1 - e2) / (e1 + e2)) ** 2
+    return r0 + (1 - r0) * jnp.power(1 - c, jnp.asarray(5.0, c.dtype))
+
+
+def _mitsuba():
+    try:
+        if "DRJIT_LIBLLVM_PATH" not in os.environ:
+            for cand in ("/usr/lib/x86_64-linux-gnu/libLLVM-19.so", "/usr/lib/aarch64-linux-gnu/libLLVM-19.so"):
+                if os.path.exists(cand):
+                    os.environ["DRJIT_LIBLLVM_PATH"] = cand
+        import drjit as dr
+        import mitsuba as mi
+
+        mi.set_variant("llvm_ad_rgb")
+        return mi, dr
+    except Exception as e:  # noqa: BLE001 - the peer is optional; say why it was skipped
+        return None, f"{type(e).__name__}: {str(e)[:100]}"
+
+
+def _fresnel_reference(c, e1, e2):
+    from . import _mpref
+
+    out = []
+    for x in c:
+        d = _mpref.fresnel_ref(_mpref.mpf(x), _mpref.mpf(e1), _mpref.mpf(e2))
+        out.append(float((d["R_s"] + d["R_p"]) / 2))
+    return np.asarray(out)
+
+
+def _schlick_reference(c, e1, e2):
+    r0 = ((e1 - e2) / (e1 + e2)) ** 2
+    return r0 + (1 - r0) * (1 - c.astype(np.float64)) ** 5
+
+
+def bench_kernels(*, quick=False, progress=None, sizes=None, mitsuba=True, repeats=None):
+    """Throughput and error of every Fresnel model and refraction method, float32 and float64,
+    side by side with NumPy, a naive JAX transcription and Mitsuba 3, plus a copy kernel."""
+    import jax
+    import jax.numpy as jnp
+
+    import jaxoptics as jo
+
+    sizes = sizes or ((1_000, 100_000, 1_000_000) if quick else (1_000, 100_000, 10_000_000))
+    repeats = repeats or (3 if quick else 7)
+    e1, e2 = 1.5, 1.0  # leaving glass: the critical angle and TIR are in the sweep
+    rows = []
+    rng = np.random.default_rng(0)
+    sample = rng.uniform(0, 1, 400)
+    ref_exact = _fresnel_reference(sample, e1, e2)
+    ref_schlick = _schlick_reference(sample, e1, e2)
+    models = {
+        "fresnel, exact (jaxoptics)": (lambda c: jo.fresnel(c, e1, e2), ref_exact),
+        "naive JAX textbook fresnel": (lambda c: _naive_jax_fresnel(c, e1, e2), ref_exact),
+        "schlick, multiplications (jaxoptics)": (lambda c: jo.schlick(c, e1, e2), ref_exact),
+        "schlick, pow": (lambda c: _schlick_pow(c, e1, e2), ref_exact),
+        "schlick_tir (jaxoptics)": (lambda c: jo.schlick_tir(c, e1, e2), ref_exact),
+        "copy (x * 2), the memory-bound limit": (lambda c: c * 2, None),
+    }
+    for dtype in (np.float32, np.float64):
+        for name, (f, ref) in models.items():
+            fj = jax.jit(f)
+            err = {}
+            if ref is not None:
+                got = np.asarray(fj(jnp.asarray(sample.astype(dtype))), np.float64)
+                err = dict(max_err=float(np.max(np.abs(got - ref))), mean_err=float(np.mean(np.abs(got - ref))))
+                if "schlick" in name:  # its error against its own formula too (numerical stability)
+                    err["max_err_vs_own_formula"] = float(np.max(np.abs(got - ref_schlick))) if "tir" not in name else None
+            for N in sizes:
+                c = jnp.asarray(rng.uniform(0, 1, N).astype(dtype))
+                comp, run, _ = timeit(lambda: fj(c), repeats=repeats)
+                rows.append(dict(group="fresnel", method=name, dtype=np.dtype(dtype).name, n=N, compile_s=comp, run_s=run,
+                                 ns_per_element=1e9 * run / N, bytes_per_element=2 * np.dtype(dtype).itemsize, **err))
+            if progress:
+                progress.update(1)
+        # NumPy peer (the same textbook formula)
+        err_np = np.asarray(_np_fresnel_unpolarized(sample.astype(dtype), dtype(e1), dtype(e2)), np.float64)
+        for N in sizes:
+            c = rng.uniform(0, 1, N).astype(dtype)
+            comp, run, _ = timeit(lambda: _np_fresnel_unpolarized(c, dtype(e1), dtype(e2)), repeats=repeats, warmup=True)
+            rows.append(dict(group="fresnel", method="NumPy textbook fresnel", dtype=np.dtype(dtype).name, n=N, compile_s=None,
+                             run_s=run, ns_per_element=1e9 * run / N, max_err=float(np.max(np.abs(err_np - ref_exact))),
+                             mean_err=float(np.mean(np.abs(err_np - ref_exact)))))
+        # gradients with respect to the index: reverse mode (of the sum) and forward mode (per element)
+        for mode in ("jax.grad", "forward mode (jvp)"):
+            if mode == "jax.grad":
+                g = jax.jit(jax.grad(lambda e, c: jnp.sum(jo.fresnel(c, e1, e))))
+                call = lambda c: g(jnp.asarray(e2, dtype), c)
+            else:
+                g = jax.jit(lambda e, c: jax.jvp(lambda e: jo.fresnel(c, e1, e), (e,), (jnp.ones_like(e),))[1])
+                call = lambda c: g(jnp.full(c.shape, e2, dtype), c)
+            for N in sizes:
+                c = jnp.asarray(rng.uniform(0, 1, N).astype(dtype))
+                comp, run, _ = timeit(lambda: call(c), repeats=repeats)
+                rows.append(dict(group="gradient", method=f"d fresnel / d eta2, {mode}", dtype=np.dtype(dtype).name, n=N,
+                                 compile_s=comp, run_s=run, ns_per_element=1e9 * run / N))
+        if progress:
+            progress.update(1)
+        # refraction methods (vectors)
+        th = rng.uniform(0, np.pi / 2, 300)
+        iv = np.stack([np.sin(th), np.zeros_like(th), -np.cos(th)], -1)
+        nz = np.array([0.0, 0.0, 1.0])
+        from . import _mpref
+
+        ref_t = np.array([[float(v) for v in _mpref.refract_ref([_mpref.mpf(x) for x in row], [_mpref.mpf(0), _mpref.mpf(0), _mpref.mpf(1)],
+                                                                _mpref.mpf(e1), _mpref.mpf(e2))[0]] for row in iv.astype(dtype)])
+        for method in ("degreve", "bec", "heckbert", "oliveira"):
+            f = jax.jit(lambda i, m=method: jo.refract(i, jnp.asarray(nz, dtype), e1, e2, method=m).t)
+            got = np.asarray(f(jnp.asarray(iv.astype(dtype))), np.float64)
+            d = np.max(np.abs(got - ref_t), axis=1)
+            for N in sizes:
+                t_ = rng.uniform(0, np.pi / 2, N)
+                i = jnp.asarray(np.stack([np.sin(t_), np.zeros_like(t_), -np.cos(t_)], -1).astype(dtype))
+                comp, run, _ = timeit(lambda: f(i), repeats=repeats)
+                rows.append(dict(group="refract", method=f"refract, {method}", dtype=np.dtype(dtype).name, n=N, compile_s=comp,
+                                 run_s=run, ns_per_element=1e9 * run / N, max_err=float(np.max(d)), mean_err=float(np.mean(d)),
+                                 bytes_per_element=6 * np.dtype(dtype).itemsize))
+        if progress:
+            progress.update(1)
+        # scene specializations of the fused kernel, against the separate kernels
+        specs = {
+            "interface, full (r, t, tir, R, T)": jo.InterfaceSpec(),
+            "interface, R only": jo.InterfaceSpec(outputs=("R",)),
+            "interface, R only, no input checks": jo.InterfaceSpec(outputs=("R",), check_inputs=False),
+            "interface, t and R, schlick, no TIR": jo.InterfaceSpec(outputs=("t", "R"), fresnel="schlick", tir_possible=False),
+            "separate: refract": None,
+            "separate: fresnel_rt of |i.n|": None,
+            "separate: reflect": None,
+        }
+        for name, spec in specs.items():
+            if spec is not None:
+                f = jax.jit(lambda i, s=spec: jo.interface(i, jnp.asarray(nz, dtype), e1, e2, spec=s))
+            elif "refract" in name:
+                f = jax.jit(lambda i: jo.refract(i, jnp.asarray(nz, dtype), e1, e2))
+            elif "fresnel_rt" in name:
+                f = jax.jit(lambda i: jo.fresnel_rt(jnp.abs(i[..., 2]), e1, e2))
+            else:
+                f = jax.jit(lambda i: jo.reflect(i, jnp.asarray(nz, dtype)))
+            N = sizes[-1]
+            t_ = rng.uniform(0, np.pi / 2, N)
+            i = jnp.asarray(np.stack([np.sin(t_), np.zeros_like(t_), -np.cos(t_)], -1).astype(dtype))
+            comp, run, _ = timeit(lambda: f(i), repeats=repeats)
+            rows.append(dict(group="scene", method=name, dtype=np.dtype(dtype).name, n=N, compile_s=comp, run_s=run,
+                             ns_per_element=1e9 * run / N))
+        if progress:
+            progress.update(1)
+    # Mitsuba 3 (float32 only: its llvm_ad_rgb variant)
+    mi, dr = _mitsuba() if mitsuba else (None, "not requested")
+    if mi is None:
+        rows.append(dict(group="fresnel", method=f"Mitsuba 3 fresnel (skipped: {dr})", dtype="float32", n=0))
+    else:
+        got = np.asarray(mi.fresnel(mi.Float(sample.astype(np.float32)), mi.Float(e2 / e1))[0], np.float64)
+        err = dict(max_err=float(np.max(np.abs(got - ref_exact))), mean_err=float(np.mean(np.abs(got - ref_exact))))
+        for N in sizes:
+            c = mi.Float(rng.uniform(0, 1, N).astype(np.float32))
+            eta = mi.Float(e2 / e1)
+
+            def call():
+                r = mi.fresnel(c, eta)[0]
+                dr.eval(r)
+                dr.sync_thread()
+                return None
+
+            comp, run, _ = timeit(call, repeats=repeats)
+            rows.append(dict(group="fresnel", method="Mitsuba 3 fresnel (Dr.Jit LLVM)", dtype="float32", n=N, compile_s=comp,
+                             run_s=run, ns_per_element=1e9 * run / N, **err))
+    if progress:
+        progress.update(1)
+    return rows
+
+
+def kernels_table(rows, size) -> str:
+    out = ["| group | method | dtype | elements/s | ns/element | compile (s) | max error | mean error | GB/s |",
+           "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        if r.get("n") != size:
+            if r.get("n") == 0:
+                out.append(f"| {r['group']} | {r['method']} | {r['dtype']} | | | | | | |")
+            continue
+        eps = r["n"] / r["run_s"]
+        gbs = f"{r['bytes_per_element'] * eps / 1e9:.1f}" if r.get("bytes_per_element") else ""
+        comp = "" if r.get("compile_s") is None else f"{r['compile_s']:.2f}"
+        me = "" if r.get("max_err") is None else f"{r['max_err']:.2e}"
+        mn = "" if r.get("mean_err") is None else f"{r['mean_err']:.2e}"
+        out.append(f"| {r['group']} | {r['method']} | {r['dtype']} | {eps:.3g} | {r['ns_per_element']:.3g} | {comp} | {me} | {mn} | {gbs} |")
+    return "\n".join(out)
+
+
+def scaling_table(rows, sizes) -> str:
+    head = "| method | dtype | " + " | ".join(f"N = {n:.0e}" for n in sizes) + " |"
+    out = [head, "| --- | --- | " + " | ".join("---:" for _ in sizes) + " |"]
+    keys = []
+    for r in rows:
+        k = (r["method"], r["dtype"])
+        if r.get("n") and r["group"] in ("fresnel", "refract", "gradient") and k not in keys:
+            keys.append(k)
+    for k in keys:
+        cells = []
+        for n in sizes:
+            m = [r for r in rows if (r["method"], r["dtype"]) == k and r.get("n") == n]
+            cells.append(f"{n / m[0]['run_s']:.3g}/s" if m else "")
+        out.append(f"| {k[0]} | {k[1]} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def pareto_chart(rows, size, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8.5, 6))
+    markers = {"float32": "o", "float64": "s"}
+    for r in rows:
+        if r.get("n") != size or r.get("max_err") is None or r["group"] not in ("fresnel", "refract"):
+            continue
+        err = max(r["max_err"], 1e-17)
+        color = "C0" if "jaxoptics" in r["method"] or r["group"] == "refract" else ("C3" if "Mitsuba" in r["method"] else "C1")
+        ax.scatter(r["ns_per_element"], err, marker=markers[r["dtype"]], color=color, s=40)
+        ax.annotate(f"{r['method'].replace(' (jaxoptics)', '')} [{r['dtype'][-2:]}]", (r["ns_per_element"], err),
+                    fontsize=6.5, xytext=(4, 2), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel(f"time per element (ns), N = {size:,}")
+    ax.set_ylabel("max abs error against 50-digit mpmath")
+    ax.set_title("Speed against error (lower left is better); circles float32, squares float64")
+    ax.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
