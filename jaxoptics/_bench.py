@@ -129,7 +129,12 @@ n = 1_000_000 if quick else 10_000_000
 c, _ = jo.shard_batch(jnp.linspace(0.0, 1.0, n, dtype=jnp.float32), mesh=mesh)
 f = jax.jit(lambda c: jo.fresnel(c, 1.0, 1.5))
 t_k = med(lambda: f(c))
-print(json.dumps(dict(devices=len(jax.devices()), fresnel_elements=n, fresnel_s=t_k)))
+B = 2000 if quick else 10_000
+th = np.deg2rad(np.linspace(0, 85, 90))
+R = jo.synthetic_reflectance(jax.random.PRNGKey(0), jnp.linspace(1.01, 4.0, B), jnp.asarray(th), noise=1e-3)
+Rs, _ = jo.shard_batch(R, mesh=mesh)
+t_f = med(lambda: jo.fit_eta(th, Rs).eta, 3)
+print(json.dumps(dict(devices=len(jax.devices()), fresnel_elements=n, fresnel_s=t_k, fit_curves=B, fit_s=t_f)))
 """
 
 
@@ -154,13 +159,14 @@ def bench_devices(*, quick=False, progress=None):
 
 def devices_table(rows) -> str:
     base = rows[0]
-    out = ["| devices | fresnel float32, sharded (elements/s) | relative to 1 device |",
-           "| ---: | ---: | ---: |"]
+    out = ["| devices | fresnel float32, sharded (elements/s) | relative | fit_eta float64, sharded (curves/s) | relative |",
+           "| ---: | ---: | ---: | ---: | ---: |"]
     for r in rows:
         if "error" in r:
-            out.append(f"| {r['devices']} | failed: {r['error']} | |")
+            out.append(f"| {r['devices']} | failed: {r['error']} | | | |")
             continue
-        out.append(f"| {r['devices']} | {r['fresnel_elements'] / r['fresnel_s']:.3g} | {base['fresnel_s'] / r['fresnel_s']:.2f}x |")
+        out.append(f"| {r['devices']} | {r['fresnel_elements'] / r['fresnel_s']:.3g} | {base['fresnel_s'] / r['fresnel_s']:.2f}x | "
+                   f"{r['fit_curves'] / r['fit_s']:.3g} | {base['fit_s'] / r['fit_s']:.2f}x |")
     return "\n".join(out)
 
 

@@ -281,6 +281,66 @@ def _fit_batch(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, ma
     return jax.vmap(one)(R, w, y0)
 
 
+def _refit(res, theta, R, w, eta1, y_init, lm, use_init, kw):
+    """Gauss-Newton is fast but undamped: refit whatever it did not converge on with
+    Levenberg-Marquardt, in one more batched call over just those curves."""
+    bad = np.flatnonzero(~np.asarray(res.converged))
+    if not bad.size:
+        return res
+    sub = _fit_batch(theta, R[bad], w[bad], eta1, y_init[bad], solver=lm, use_init=use_init, **kw)
+    return jax.tree_util.tree_map(lambda a, b: a.at[bad].set(b), res, sub)
+
+
+def _batch_shards(R):
+    """The addressable shards of `R` if it is sharded along its first axis only, over more than
+    one device; else None."""
+    sh = getattr(R, "sharding", None)
+    if isinstance(R, jax.core.Tracer) or not isinstance(sh, jax.sharding.NamedSharding) or len(sh.device_set) == 1:
+        return None
+    spec = tuple(sh.spec) + (None,) * (R.ndim - len(sh.spec))
+    if spec[0] is None or any(a is not None for a in spec[1:]):
+        return None
+    seen, shards = set(), []
+    for s in R.addressable_shards:
+        key = (s.index[0].start, s.index[0].stop)
+        if key not in seen:  # replicas along other mesh axes: fit each block once
+            seen.add(key)
+            shards.append(s)
+    return shards
+
+
+def _fit_per_shard(shards, theta, R, w, eta1, y_init, solver, lm, use_init, kw):
+    """Fit each device's block of curves on that device, then assemble the sharded result.
+
+    Each device runs its own vmapped solver loop: no data move and no cross-device reduction in
+    the loop (partitioning one vmapped loop over devices puts an all-reduce of the loop predicate in
+    every step, and with forced host devices that was seen to stall for a few thousand curves).
+    """
+    sh = R.sharding
+    results = []
+    for s in shards:  # dispatch all first: the devices work concurrently
+        sl = s.index[0]
+        put = lambda x: jax.device_put(x, s.device)
+        results.append(_fit_batch(put(theta), s.data, put(w[sl]), put(eta1), put(y_init[sl]), solver=solver,
+                                  use_init=use_init, **kw))
+    if lm is not None:
+        for k, s in enumerate(shards):
+            sl = s.index[0]
+            put = lambda x: jax.device_put(x, s.device)
+            results[k] = _refit(results[k], put(theta), s.data, put(w[sl]), put(eta1), put(y_init[sl]), lm, use_init, kw)
+    P = jax.sharding.PartitionSpec
+    ax = sh.spec[0]
+
+    def assemble(*leaves):
+        shape = (R.shape[0],) + leaves[0].shape[1:]
+        target = jax.sharding.NamedSharding(sh.mesh, P(ax, *([None] * (len(shape) - 1))))
+        arrays = {s.device: leaf for s, leaf in zip(shards, leaves)}
+        ordered = [arrays[d] for d in target.addressable_devices_indices_map(shape)]
+        return jax.make_array_from_single_device_arrays(shape, target, ordered)
+
+    return jax.tree_util.tree_map(assemble, *results)
+
+
 def _is_concrete(*xs):
     return not any(isinstance(x, jax.core.Tracer) for x in xs)
 
@@ -406,13 +466,12 @@ def fit_eta(theta, R, *, eta1=1.0, polarization="unpolarized", sigma=None, init=
     solver = _default_solver(dt, absorbing) if solver is None else solver
     kw = dict(polarization=polarization, absorbing=absorbing, max_steps=int(max_steps), sigma_given=sigma is not None)
     eta1 = jnp.asarray(eta1, dt)
-    res = _fit_batch(theta, Rf, w, eta1, y_init, solver=solver, use_init=use_init, **kw)
-    if retry and _is_concrete(Rf, w):
-        # Gauss-Newton is fast but undamped: refit whatever it did not converge on with
-        # Levenberg-Marquardt, in one more batched call over just those curves.
-        bad = np.flatnonzero(~np.asarray(res.converged)) if res.converged.is_fully_addressable else np.array([], int)
-        if bad.size:
-            lm = optx.LevenbergMarquardt(rtol=_tol(dt), atol=_tol(dt))
-            sub = _fit_batch(theta, Rf[bad], w[bad], eta1, y_init[bad], solver=lm, use_init=use_init, **kw)
-            res = jax.tree_util.tree_map(lambda a, b: a.at[bad].set(b), res, sub)
+    lm = optx.LevenbergMarquardt(rtol=_tol(dt), atol=_tol(dt)) if retry else None
+    shards = _batch_shards(Rf)
+    if shards is None:
+        res = _fit_batch(theta, Rf, w, eta1, y_init, solver=solver, use_init=use_init, **kw)
+        if retry and _is_concrete(Rf, w):
+            res = _refit(res, theta, Rf, w, eta1, y_init, lm, use_init, kw)
+    else:
+        res = _fit_per_shard(shards, theta, Rf, w, eta1, y_init, solver, lm, use_init, kw)
     return jax.tree_util.tree_map(lambda x: x.reshape(batch + x.shape[1:]), res)

@@ -48,15 +48,18 @@ SCRIPT = textwrap.dedent('''
 
     # fitting: a sharded batch of curves stays sharded and equals the single-device fit
     th = np.deg2rad(np.linspace(0, 85, 90))
-    etas = np.linspace(1.1, 3.0, 403)
+    etas = np.linspace(1.1, 3.0, 2003)
     R = np.asarray(jo.synthetic_reflectance(jax.random.PRNGKey(1), jnp.asarray(etas), jnp.asarray(th), noise=1e-3))
     single = jo.fit_eta(th, R)
-    Rs, _ = jo.shard_batch(R[:400], mesh=mesh)
+    Rs, _ = jo.shard_batch(R[:2000], mesh=mesh)
     res = jo.fit_eta(th, Rs)
     assert res.eta.sharding.spec == P("batch") and res.stderr.sharding.spec == P("batch")
-    assert np.allclose(np.asarray(res.eta), np.asarray(single.eta[:400]), rtol=1e-12, atol=0)
-    res = jo.fit_eta_sharded(th, R, mesh=mesh)  # 403 curves on 4 devices
-    assert res.eta.shape == (403,) and bool(jnp.all(res.converged))
+    assert res.covariance.sharding.spec[0] == "batch"
+    assert np.allclose(np.asarray(res.eta), np.asarray(single.eta[:2000]), rtol=1e-12, atol=0)
+    res = jo.fit_eta_sharded(th, R, mesh=mesh)  # 2003 curves on 4 devices
+    assert res.eta.shape == (2003,) and bool(jnp.all(res.converged))
+    kept = jo.fit_eta_sharded(th, R, mesh=mesh, keep_padding=True)
+    assert kept.eta.shape == (2004,) and kept.eta.sharding.spec == P("batch")
     assert np.allclose(np.asarray(res.eta), np.asarray(single.eta), rtol=1e-12, atol=0)
     print("SHARDING OK")
 ''')
