@@ -403,19 +403,11 @@ def mitsuba_comparison(n=200_000, progress=None):
     """Mitsuba 3's float32 `fresnel` (LLVM backend) on the hardest inputs: eta = 1.000001 within
     1e-6 of the critical angle, and its automatic derivative under TIR near grazing incidence.
     Skipped with a note when Mitsuba is not installed or its LLVM backend cannot start."""
-    try:
-        import os
+    from ._bench import _mitsuba
 
-        if "DRJIT_LIBLLVM_PATH" not in os.environ:
-            for cand in ("/usr/lib/x86_64-linux-gnu/libLLVM-19.so", "/usr/lib/aarch64-linux-gnu/libLLVM-19.so"):
-                if os.path.exists(cand):
-                    os.environ["DRJIT_LIBLLVM_PATH"] = cand
-        import drjit as dr
-        import mitsuba as mi
-
-        mi.set_variant("llvm_ad_rgb")
-    except Exception as e:  # noqa: BLE001 - any failure to start the peer is reported, not raised
-        return {"skipped": f"Mitsuba 3 LLVM backend not available ({type(e).__name__}: {str(e)[:120]})"}
+    mi, dr = _mitsuba()
+    if mi is None:
+        return {"skipped": f"Mitsuba 3 LLVM backend not available ({dr})"}
     import jax
     import jax.numpy as jnp
 
