@@ -46,6 +46,14 @@ SCRIPT = textwrap.dedent('''
     padded = jo.sharded_map(lambda c: jo.fresnel(c, 1.0, 1.5), c[:3998], keep_padding=True)
     assert padded.shape == (4000,) and padded.sharding.spec == P("batch")
 
+    # the fused interface kernel through the helper: pad, shard, run, trim; padded form stays sharded
+    hit = jo.sharded_map(lambda i: jo.interface(i, jnp.array([0.0, 0.0, 1.0]), 1.0, 1.5), i[:3998])
+    assert hit.t.shape == (3998, 3) and hit.R.shape == (3998,)
+    hit_p = jo.sharded_map(lambda i: jo.interface(i, jnp.array([0.0, 0.0, 1.0]), 1.0, 1.5), i[:3998], keep_padding=True)
+    assert hit_p.R.sharding.spec == P("batch") and hit_p.t.sharding.spec[0] == "batch"
+    ref = jax.jit(lambda i: jo.interface(i, jnp.array([0.0, 0.0, 1.0]), 1.0, 1.5))(jnp.asarray(i[:3998]))
+    assert np.allclose(np.asarray(hit.R), np.asarray(ref.R), rtol=1e-13, atol=1e-15)
+
     # fitting: a sharded batch of curves stays sharded and equals the single-device fit
     th = np.deg2rad(np.linspace(0, 85, 90))
     etas = np.linspace(1.1, 3.0, 2003)
