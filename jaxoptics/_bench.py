@@ -398,13 +398,12 @@ def bench_kernels(*, quick=False, progress=None, sizes=None, mitsuba=True, repea
             c = mi.Float(rng.uniform(0, 1, N).astype(np.float32))
             eta = mi.Float(e2 / e1)
 
-            def call():
+            def mitsuba_call(c=c, eta=eta):
                 r = mi.fresnel(c, eta)[0]
                 dr.eval(r)
                 dr.sync_thread()
-                return None
 
-            comp, run, _ = timeit(call, repeats=repeats)
+            comp, run, _ = timeit(mitsuba_call, repeats=repeats)
             rows.append(dict(group="fresnel", method="Mitsuba 3 fresnel (Dr.Jit LLVM)", dtype="float32", n=N, compile_s=comp,
                              run_s=run, ns_per_element=1e9 * run / N, **err))
     if progress:

@@ -241,7 +241,7 @@ def _mp_check(name, f, c, a, b, cats, dtype, samples):
     pick = np.concatenate([rng.choice(structured, min(samples // 2, structured.size), replace=False),
                            rng.choice(rand, min(samples - samples // 2, rand.size), replace=False)])
     got = np.asarray(jax.jit(f)(c[pick], a[pick], b[pick]))
-    worst_ex, worst_err = 0.0, 0.0
+    worst_ex = 0.0
     errs = []
     worst_input = None
     for k, idx in enumerate(pick):

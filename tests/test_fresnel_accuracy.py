@@ -6,7 +6,6 @@ standard mixed forward/backward error bound: it reduces to "4 ulps" where the pr
 well-conditioned and allows the inherent error near the critical angle.
 """
 
-import itertools
 
 import jax.numpy as jnp
 import mpmath as mp

@@ -5,7 +5,6 @@ when max_k |t_k - t_ref_k| <= bound + 4 eps (the directions have unit length).
 """
 
 import jax.numpy as jnp
-import mpmath as mp
 import numpy as np
 import pytest
 
