@@ -345,24 +345,13 @@ def _is_concrete(*xs):
     return not any(isinstance(x, jax.core.Tracer) for x in xs)
 
 
-def check_curves(theta, R, sigma, *, n_params: int, where: str = "") -> None:
-    """Value checks on concrete data, before any solving: a clear ValueError for degenerate input.
-
-    A `jax.Array` (possibly sharded over devices or hosts) is checked with reductions where it
-    lives; only when a check fails is the offending entry located on the host."""
-    if isinstance(R, jax.Array) and R.ndim >= 1 and np.ndim(theta) == 1 and R.shape[-1] == np.shape(theta)[0]:
-        finite = bool(jnp.all(jnp.isfinite(R)))
-        const = bool(jnp.any(jnp.max(R, axis=-1) == jnp.min(R, axis=-1)))
-        if finite and not const and R.shape[-1] >= n_params + 1 and sigma is None:
-            check_curves(theta, np.zeros((1, R.shape[-1])) + np.linspace(0, 1, R.shape[-1]), None, n_params=n_params, where=where)
-            return
+def _check_theta(theta, R_shape, n_params, at):
+    """Checks of the (small) shared angle array and of R's shape against it; returns theta."""
     th = np.asarray(theta, dtype=np.float64)
-    Rv = np.asarray(R, dtype=np.float64)
-    at = f" in {where}" if where else ""
     if th.ndim != 1:
         raise ValueError(f"theta must be one-dimensional (shared by all curves), got shape {th.shape}{at}")
-    if Rv.ndim < 1 or Rv.shape[-1] != th.shape[0]:
-        raise ValueError(f"R must have shape (..., {th.shape[0]}) to match theta, got {Rv.shape}{at}")
+    if len(R_shape) < 1 or R_shape[-1] != th.shape[0]:
+        raise ValueError(f"R must have shape (..., {th.shape[0]}) to match theta, got {tuple(R_shape)}{at}")
     if th.shape[0] < n_params + 1:
         raise ValueError(
             f"{th.shape[0]} angle(s){at}: fitting {n_params} parameter(s) with an uncertainty needs at least "
@@ -375,6 +364,22 @@ def check_curves(theta, R, sigma, *, n_params: int, where: str = "") -> None:
     if out.size:
         k = out[0][0]
         raise ValueError(f"theta[{k}] = {th[k]} rad ({np.rad2deg(th[k]):.4g} deg) is outside [0, pi/2]{at}")
+    return th
+
+
+def check_curves(theta, R, sigma, *, n_params: int, where: str = "") -> None:
+    """Value checks on concrete data, before any solving: a clear ValueError for degenerate input.
+
+    A `jax.Array` (possibly sharded over devices or hosts) is checked with reductions where it
+    lives; only when a check fails is the offending entry located on the host."""
+    at = f" in {where}" if where else ""
+    th = _check_theta(theta, np.shape(R), n_params, at)
+    if isinstance(R, jax.Array) and sigma is None:
+        finite = bool(jnp.all(jnp.isfinite(R)))
+        const = bool(jnp.any(jnp.max(R, axis=-1) == jnp.min(R, axis=-1)))
+        if finite and not const:
+            return  # all good; no copy of a possibly large, sharded array to the host
+    Rv = np.asarray(R, dtype=np.float64)
     bad = np.argwhere(~np.isfinite(Rv))
     if bad.size:
         idx = tuple(int(i) for i in bad[0])

@@ -306,9 +306,8 @@ def _power_pair(t: _Terms, refl, trans):
     return R, T
 
 
-def _sp_rt(cos_i, eta1, eta2):
-    """(R_s, R_p, T_s, T_p) for real or complex eta2."""
-    t = _terms(cos_i, eta1, eta2)
+def _powers(t: _Terms, eta1, eta2):
+    """(R_s, R_p, T_s, T_p) from the shared intermediates, for real or complex eta2 (no NaN mask)."""
     r_s, r_p = _r_amplitudes(t)
     if jnp.iscomplexobj(t.kt):
         # Power entering medium 2 (Poynting flux just past the interface), equal to 1 - R.
@@ -321,7 +320,13 @@ def _sp_rt(cos_i, eta1, eta2):
         Tp = (kk4 * (eta1 * eta2) ** 2) / t.den_p / t.den_p
     R_s, T_s = _power_pair(t, _abs2(r_s), Ts)
     R_p, T_p = _power_pair(t, _abs2(r_p), Tp)
-    return _nan_where_invalid(t.valid, R_s, R_p, T_s, T_p)
+    return R_s, R_p, T_s, T_p
+
+
+def _sp_rt(cos_i, eta1, eta2):
+    """(R_s, R_p, T_s, T_p) for real or complex eta2, NaN for invalid elements."""
+    t = _terms(cos_i, eta1, eta2)
+    return _nan_where_invalid(t.valid, *_powers(t, eta1, eta2))
 
 
 def fresnel(cos_i, eta1, eta2):

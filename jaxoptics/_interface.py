@@ -15,8 +15,8 @@ import jax
 import jax.numpy as jnp
 
 from . import _validate as V
-from ._fresnel import _abs2, _positive_finite, _power_pair, _r_amplitudes, _schlick_from_r0, _terms, _valid_index
-from ._refract import METHODS, _dot, _rsqrt_positive, _valid_vectors, _vectors
+from ._fresnel import _positive_finite, _powers, _schlick_from_r0, _terms, _valid_index
+from ._refract import METHODS, _dot, _refracted, _rsqrt_positive, _valid_vectors, _vectors
 
 OUTPUTS = ("r", "t", "tir", "R", "T", "R_s", "R_p")
 FRESNEL_MODELS = ("exact", "schlick", "schlick_tir")
@@ -124,25 +124,8 @@ def interface(i, n, eta1, eta2, *, spec: InterfaceSpec = DEFAULT_SPEC) -> Intera
     tir = tm.tir if (tm is not None and spec.tir_possible) else None
 
     if "t" in want:
-        e1v, e2v = e1[..., None], e2[..., None]
-        if spec.method == "degreve":
-            den = tm.ki + tm.kt
-            ok = den > 0
-            coef = jnp.where(ok, -tm.diff / (e2 * jnp.where(ok, den, 1)), 0)[..., None]
-            t = (e1v / e2v) * i + coef * nf
-            if spec.tir_possible:
-                i_tan = jnp.cross(n, cr)
-                t = jnp.where((e1 > e2)[..., None], (e1v * i_tan - tm.kt[..., None] * nf) / e2v, t)
-        elif spec.method == "oliveira":
-            t = i - nf
-            t = t / jnp.sqrt(jnp.maximum(_dot(t, t), jnp.asarray(jnp.finfo(dt).tiny, dt)))[..., None]
-        else:  # heckbert, bec: cos_t from cos_i, as in refract
-            from ._fresnel import sqrt_where
-
-            r_ = e1 / e2
-            w = r_ * c
-            k2 = 1 - r_ * r_ * (1 - c * c) if spec.method == "heckbert" else 1 + (w - r_) * (w + r_)
-            t = r_[..., None] * i + (w - sqrt_where(k2, k2 > 0))[..., None] * nf
+        col = lambda x: x[..., None]
+        t = _refracted(spec.method, i, n, nf, col(c), col(tm.ki), col(tm.kt), col(tm.diff), cr, col(e1), col(e2), 1.0)
         if spec.tir_possible:
             t = jnp.where(tir[..., None], out["r"], t)
         out["t"] = t
@@ -151,17 +134,8 @@ def interface(i, n, eta1, eta2, *, spec: InterfaceSpec = DEFAULT_SPEC) -> Intera
 
     if want & {"R", "T", "R_s", "R_p"}:
         if spec.fresnel == "exact":
-            r_s, r_p = _r_amplitudes(tm)
-            if spec.complex_index:
-                Ts = 4 * jnp.real(tm.ki) * jnp.real(tm.kt) / _abs2(tm.den_s)
-                Tp = 4 * e1 * e1 * jnp.real(tm.ki) * jnp.real(e2 * e2 * jnp.conj(tm.kt)) / _abs2(tm.den_p)
-            else:
-                kk4 = 4 * tm.ki * tm.kt
-                Ts = kk4 / tm.den_s / tm.den_s
-                Tp = (kk4 * (e1 * e2) ** 2) / tm.den_p / tm.den_p
             tm_sel = tm if spec.tir_possible else tm._replace(tir=jnp.zeros_like(tm.ok))
-            R_s, T_s = _power_pair(tm_sel, _abs2(r_s), Ts)
-            R_p, T_p = _power_pair(tm_sel, _abs2(r_p), Tp)
+            R_s, R_p, T_s, T_p = _powers(tm_sel, e1, e2)
             out.update(R=0.5 * (R_s + R_p), T=0.5 * (T_s + T_p), R_s=R_s, R_p=R_p)
         else:
             a = (e1 - e2) / (e1 + e2)

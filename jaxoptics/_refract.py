@@ -177,39 +177,43 @@ def refract(i, n, eta1, eta2, *, method: str = "degreve", oliveira_c: float = 1.
     q = jax.lax.optimization_barrier(q)
     tir = q < 0
 
+    kt = sqrt_where(q, q > 0)  # double where (see sqrt_where): k_t = 0 under TIR
+    t = _refracted(method, i, n, nf, c, ki, kt, diff, cr, eta1, eta2, oliveira_c)
+
+    t = jnp.where(tir, reflected, t)
+    t = jnp.where(valid[..., None], t, jnp.nan)
+    return Refraction(t, tir[..., 0] & valid)
+
+
+def _refracted(method, i, n, nf, c, ki, kt, diff, cr, eta1, eta2, oliveira_c):
+    """The transmitted direction outside TIR, for each formulation (shared with `interface`).
+
+    `c`, `ki`, `kt`, `diff`, `eta1`, `eta2` have shape (..., 1); `cr = i x n`, or None to skip the
+    leaving-side form (when the caller promises eta1 <= eta2).
+    """
     if method == "degreve":
-        kt = sqrt_where(q, q > 0)  # double where (see sqrt_where): k_t = 0 under TIR
         den = ki + kt
         ok = den > 0  # false only at grazing incidence with eta1 == eta2 (0/0): t = i there
         # r cos_i - cos_t = (eta1^2 - eta2^2) / (eta2 (k_i + k_t)): no cancellation, exactly 0 for
         # eta1 == eta2, where r = eta1 / eta2 is exactly 1, so t is (normalized) i bit for bit.
         coef = jnp.where(ok, -diff / (eta2 * jnp.where(ok, den, 1)), 0)
-        t_entering = (eta1 / eta2) * i + coef * nf
+        t = (eta1 / eta2) * i + coef * nf
+        if cr is None:
+            return t
         # Leaving the denser medium, the normal component of that form, -r cos_i + coef = -cos_t,
         # cancels by a factor up to eta1/eta2 (about 1000 at normal incidence for 1000:1). So there
         # t = (eta1 i_tan - k_t n_f) / eta2 instead, with the tangential part of i from cross
         # products, i_tan = n x (i x n), whose normal component is zero to within eps * sin_i.
         i_tan = jnp.cross(n, cr)
-        t_leaving = (eta1 * i_tan - kt * nf) / eta2
-        t = jnp.where(eta1 > eta2, t_leaving, t_entering)
-    elif method in ("heckbert", "bec"):
+        return jnp.where(eta1 > eta2, (eta1 * i_tan - kt * nf) / eta2, t)
+    if method in ("heckbert", "bec"):
         r = eta1 / eta2
-        if method == "heckbert":
-            k2 = 1 - r * r * (1 - c * c)
-            w = r * c
-        else:
-            w = r * c
-            k2 = 1 + (w - r) * (w + r)
-        k = sqrt_where(k2, k2 > 0)  # double where (see sqrt_where)
-        t = r * i + (w - k) * nf
-    else:  # oliveira
-        t = i - oliveira_c * nf
-        tt = _dot(t, t)[..., None]
-        t = t / jnp.sqrt(jnp.maximum(tt, jnp.asarray(jnp.finfo(tt.dtype).tiny, tt.dtype)))  # tt > 0 unless i == c n_f
-
-    t = jnp.where(tir, reflected, t)
-    t = jnp.where(valid[..., None], t, jnp.nan)
-    return Refraction(t, tir[..., 0] & valid)
+        w = r * c
+        k2 = 1 - r * r * (1 - c * c) if method == "heckbert" else 1 + (w - r) * (w + r)
+        return r * i + (w - sqrt_where(k2, k2 > 0)) * nf  # double where (see sqrt_where)
+    t = i - oliveira_c * nf  # oliveira
+    tt = _dot(t, t)[..., None]
+    return t / jnp.sqrt(jnp.maximum(tt, jnp.asarray(jnp.finfo(tt.dtype).tiny, tt.dtype)))  # tt > 0 unless i == c n_f
 
 
 def critical_angle(eta1, eta2):
