@@ -64,7 +64,9 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
 from . import _validate as V
 
@@ -325,8 +327,68 @@ def _powers(t: _Terms, eta1, eta2):
 
 def _sp_rt(cos_i, eta1, eta2):
     """(R_s, R_p, T_s, T_p) for real or complex eta2, NaN for invalid elements."""
+    if not jnp.iscomplexobj(eta2):
+        return _sp_rt_real(cos_i, eta1, eta2)
     t = _terms(cos_i, eta1, eta2)
     return _nan_where_invalid(t.valid, *_powers(t, eta1, eta2))
+
+
+@jax.custom_jvp
+def _sp_rt_real(cos_i, eta1, eta2):
+    t = _terms(cos_i, eta1, eta2)
+    return _nan_where_invalid(t.valid, *_powers(t, eta1, eta2))
+
+
+def _sp_rt_real_jvp(primals, tangents):
+    r"""Closed-form derivatives of R_s and R_p (and T = 1 - R) for a real index.
+
+    Autodiff through the careful forms above costs 3.4x (forward mode) to 17x (reverse) the
+    function; these cost about nothing on top of it, since they reuse its intermediates
+    (measured: `python -m jaxoptics bench`, gradient rows). With k_i = eta1 c, k_t^2 = q =
+    eta2^2 - eta1^2 + k_i^2, m = k_i^2 - eta1^2 = -eta1^2 sin^2, diff = eta2^2 - eta1^2, g = 1/k_t,
+    D_s = k_i + k_t, D_p = eta2^2 k_i + eta1^2 k_t:
+
+    $$dR_s = \frac{4 r_s g}{D_s^2}\left(\eta_1\,\mathrm{diff}\,dc + c\,\eta_2^2\,d\eta_1 - k_i \eta_2\,d\eta_2\right)$$
+
+    $$dR_p = \frac{4 r_p g \eta_1}{D_p^2}\left(\eta_1^2 \eta_2^2\,\mathrm{diff}\,dc - \eta_2^2 k_i (k_t^2 + m)\,d\eta_1
+    + \eta_1 \eta_2 k_i (2 k_t^2 - \eta_2^2)\,d\eta_2\right)$$
+
+    (the cancelling combinations k_t - k_i^2/k_t and k_t^2 - m are replaced by diff/k_t and
+    eta2^2 exactly). Conventions kept from the autodiff version: 0 under TIR, at the critical
+    angle (k_t = 0: the double-where square root), where there is no interface, and for invalid
+    elements; d|c|/dc = +1 at c = 0 (`_abs_cos`). The coefficients are selected to 0 *before*
+    multiplying the tangents, so the transposed (reverse-mode) map has no 0 * inf either.
+    """
+    cos_i, eta1, eta2 = primals
+    t = _terms(cos_i, eta1, eta2)
+    out = _nan_where_invalid(t.valid, *_powers(t, eta1, eta2))
+    r_s, r_p = _r_amplitudes(t)
+    live = t.ok & t.valid & ~t.tir & (t.kt > 0)
+    e1, e2, c, ki, m, diff = t.e1, t.e2, t.c, t.ki, t.m, t.diff
+    kt = jnp.where(live, t.kt, 1)
+    S = 4 * r_s * t.inv_s * t.inv_s / kt
+    P = 4 * r_p * e1 * t.inv_p * t.inv_p / kt
+    e2sq = e2 * e2
+    # selected to 0 before they meet the tangents (no 0 * inf in the transposed map)
+    sel = lambda x: jnp.where(live, x, 0)
+    coef_s = (sel(S * (e1 * diff)), sel(S * (c * e2sq)), sel(S * (-ki * e2)))
+    coef_p = (sel(P * (e1 * e1 * e2sq * diff)), sel(P * (-e2sq * ki * (kt * kt + m))), sel(P * (e1 * e2 * ki * (2 * kt * kt - e2sq))))
+    sign = jnp.where(cos_i < 0, -1, 1).astype(c.dtype)
+    zero = jnp.zeros_like(c)
+
+    def apply(coefs):
+        acc = zero
+        for k, (a, d) in enumerate(zip(coefs, tangents)):
+            if type(d) is SymbolicZero:
+                continue
+            acc = acc + a * (sign * d if k == 0 else d)
+        return acc
+
+    dR_s, dR_p = apply(coef_s), apply(coef_p)
+    return out, (dR_s, dR_p, -dR_s, -dR_p)
+
+
+_sp_rt_real.defjvp(_sp_rt_real_jvp, symbolic_zeros=True)
 
 
 def fresnel(cos_i, eta1, eta2):

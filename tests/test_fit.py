@@ -239,34 +239,3 @@ def test_cli_fit_file_and_errors(capsys, tmp_path):
     assert main(["fit", str(bad)]) == 2
     assert "bad.csv, line 3" in capsys.readouterr().err
 
-
-@pytest.mark.parametrize("polarization", ["unpolarized", "s", "p"])
-def test_fit_model_jacobian_matches_mpmath(polarization):
-    """The fitter's hand-derived d R / d eta2 (forward and reverse) against mpmath.diff at 50
-    digits, entering and leaving the denser medium, off the critical angle; 0 under TIR."""
-    import mpmath as mp
-
-    from helpers import fresnel_ref, mpf
-    from jaxoptics._fit import _model
-
-    pick = {"unpolarized": lambda d: (d["R_s"] + d["R_p"]) / 2, "s": lambda d: d["R_s"], "p": lambda d: d["R_p"]}[polarization]
-    fwd = jax.jit(jax.jacfwd(lambda c, a, b: _model(c, a, b, polarization), argnums=2))
-    rev = jax.jit(jax.grad(lambda c, a, b: _model(c, a, b, polarization), argnums=2))
-    for c in (0.0, 1e-6, 0.05, 0.3, 0.62, 0.9, 1.0):
-        for a, b in ((1.0, 1.5), (1.0, 1.01), (1.0, 3.9), (1.5, 1.0), (2.4, 1.0), (1.0, 0.3)):
-            args = (jnp.float64(c), jnp.float64(a), jnp.float64(b))
-            if a > b and c < np.sqrt(1 - (b / a) ** 2):  # TIR: R = 1 for every nearby eta2
-                want = 0.0
-            elif a > b and abs(c - np.sqrt(1 - (b / a) ** 2)) < 1e-3:
-                continue
-            else:
-                want = float(mp.diff(lambda t: pick(fresnel_ref(mpf(c), mpf(a), t)), mpf(b)))
-            for got in (fwd(*args), rev(*args)):
-                assert abs(float(got) - want) <= 1e-9 * abs(want) + 1e-12, (polarization, c, a, b, float(got), want)
-
-
-def test_fit_model_refuses_other_tangents():
-    from jaxoptics._fit import _model
-
-    with pytest.raises(NotImplementedError, match="eta2 only"):
-        jax.jacfwd(lambda c: _model(c, jnp.float64(1.0), jnp.float64(1.5), "s"))(jnp.float64(0.5))
