@@ -196,7 +196,7 @@ def run(*, quick=False, sections=("kernels", "fit", "devices"), out_dir="bench_o
     out.mkdir(parents=True, exist_ok=True)
     report = {"machine": machine_description(), "quick": quick}
     md = [f"Machine: {report['machine']}", ""]
-    total = 5 * ("fit" in sections) + 3 * ("devices" in sections) + 19 * ("kernels" in sections)
+    total = 5 * ("fit" in sections) + 3 * ("devices" in sections) + 23 * ("kernels" in sections)
     with tqdm(total=total, desc="bench", unit="step") as bar:
         if "kernels" in sections:
             rows = bench_kernels(quick=quick, progress=bar, sizes=sizes, mitsuba=mitsuba)
@@ -207,6 +207,9 @@ def run(*, quick=False, sections=("kernels", "fit", "devices"), out_dir="bench_o
                    kernels_table(rows, size), "", "### Throughput against batch size", "",
                    scaling_table(rows, sorted({r["n"] for r in rows if r.get("n")})), "",
                    f"Pareto chart: {out / 'pareto.png'}", ""]
+            lim = bench_limits(quick=quick, progress=bar, n=max(sizes) if sizes else None)
+            report["limits"] = lim
+            md += [f"### What bounds XLA on the CPU (float32, N = {lim[0]['n']:,})", "", limits_table(lim), ""]
         if "fit" in sections:
             rows = bench_fit(quick=quick, progress=bar)
             report["fit"] = rows
@@ -409,6 +412,71 @@ def bench_kernels(*, quick=False, progress=None, sizes=None, mitsuba=True, repea
     if progress:
         progress.update(1)
     return rows
+
+
+def _fusions(compiled) -> int:
+    """Number of fused loops XLA emitted for a compiled program (each reads and writes memory)."""
+    text = compiled.as_text()
+    entry = text.split("ENTRY", 1)[1] if "ENTRY" in text else text
+    return entry.count(" fusion(")
+
+
+def bench_limits(*, quick=False, progress=None, n=None):
+    """What bounds XLA on the CPU, measured (float32, one size): output allocation (the same
+    kernels with the input buffer donated, so no fresh output pages are touched), the fusion split
+    of a kernel with two outputs sharing divisions and square roots, and a reduction over a
+    length-3 minor axis against the same dot product written out. Fresh inputs are made for every
+    donated call, outside the timed region."""
+    import jax
+    import jax.numpy as jnp
+
+    import jaxoptics as jo
+
+    N = n or (1_000_000 if quick else 10_000_000)
+    repeats = 3 if quick else 7
+    e1, e2 = 1.5, 1.0
+    rng = np.random.default_rng(1)
+    base = rng.uniform(0, 1, N).astype(np.float32)
+    rows = []
+
+    def run_rows(name, f, donate, arg):
+        fj = jax.jit(f, donate_argnums=0) if donate else jax.jit(f)
+        inputs = [jnp.array(arg) for _ in range(repeats + 1)] if donate else None
+        compiled = fj.lower(arg).compile()
+        if donate:
+            jax.block_until_ready(inputs)
+            it = iter(inputs)
+            comp, run, _ = timeit(lambda: compiled(next(it)), repeats=repeats)
+        else:
+            comp, run, _ = timeit(lambda: compiled(arg), repeats=repeats)
+        rows.append(dict(group="limits", method=name + (", input donated" if donate else ""), dtype="float32", n=N,
+                         compile_s=comp, run_s=run, ns_per_element=1e9 * run / N, fusions=_fusions(compiled)))
+
+    c = jnp.asarray(base)
+    for name, f in (("copy (x * 2)", lambda c: c * 2),
+                    ("fresnel, exact (jaxoptics)", lambda c: jo.fresnel(c, e1, e2)),
+                    ("naive JAX textbook fresnel", lambda c: _naive_jax_fresnel(c, e1, e2))):
+        for donate in (False, True):
+            run_rows(name, f, donate, c)
+        if progress:
+            progress.update(1)
+    run_rows("fresnel_rt, R and T (two outputs sharing divisions)", lambda c: jo.fresnel_rt(c, e1, e2), False, c)
+    run_rows("fresnel_rt, consumed as 0.3 R + 0.7 T (one output)",
+             lambda c: (lambda R, T: 0.3 * R + 0.7 * T)(*jo.fresnel_rt(c, e1, e2)), False, c)
+    v = jnp.asarray(np.stack([base, 1 - base, base * 0.5], -1))
+    w = jnp.asarray(np.array([0.2, 0.3, 0.5], np.float32))
+    run_rows("dot of 3-vectors, jnp.sum(a * b, axis=-1)", lambda v: jnp.sum(v * w[None, :], axis=-1), False, v)
+    run_rows("dot of 3-vectors, written out", lambda v: v[..., 0] * w[0] + v[..., 1] * w[1] + v[..., 2] * w[2], False, v)
+    if progress:
+        progress.update(1)
+    return rows
+
+
+def limits_table(rows) -> str:
+    out = ["| what | elements/s | ns/element | XLA fused loops |", "| --- | ---: | ---: | ---: |"]
+    for r in rows:
+        out.append(f"| {r['method']} | {r['n'] / r['run_s']:.3g} | {r['ns_per_element']:.3g} | {r['fusions']} |")
+    return "\n".join(out)
 
 
 def kernels_table(rows, size) -> str:

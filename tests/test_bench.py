@@ -24,3 +24,9 @@ def test_bench_runs_and_reports_every_method(tmp_path):
     text = (tmp_path / "bench.md").read_text()
     assert "| fresnel | fresnel, exact (jaxoptics) | float32 |" in text
     assert json.loads((tmp_path / "bench.json").read_text())["kernels"]
+    limits = {r["method"] for r in report["limits"]}
+    for m in ("copy (x * 2)", "copy (x * 2), input donated", "fresnel, exact (jaxoptics), input donated",
+              "fresnel_rt, R and T (two outputs sharing divisions)", "dot of 3-vectors, written out"):
+        assert m in limits, m
+    assert all(r["fusions"] >= 1 and r["run_s"] > 0 for r in report["limits"])
+    assert "What bounds XLA on the CPU" in text
