@@ -464,9 +464,15 @@ def bench_limits(*, quick=False, progress=None, n=None):
             run_rows(name, f, donate, c)
         if progress:
             progress.update(1)
-    run_rows("fresnel_rt, R and T (two outputs sharing divisions)", lambda c: jo.fresnel_rt(c, e1, e2), False, c)
-    run_rows("fresnel_rt, consumed as 0.3 R + 0.7 T (one output)",
-             lambda c: (lambda R, T: 0.3 * R + 0.7 * T)(*jo.fresnel_rt(c, e1, e2)), False, c)
+    from ._fresnel import _sp_rt
+
+    def shared_rt(c):  # R and T from one graph: the quotients both need feed two outputs
+        R_s, R_p, T_s, T_p = _sp_rt(c, jnp.full_like(c, e1), jnp.full_like(c, e2))
+        return 0.5 * (R_s + R_p), 0.5 * (T_s + T_p)
+
+    run_rows("R and T from one shared graph (two outputs sharing quotients)", shared_rt, False, c)
+    run_rows("the same, consumed as 0.3 R + 0.7 T (one output)", lambda c: (lambda R, T: 0.3 * R + 0.7 * T)(*shared_rt(c)), False, c)
+    run_rows("jo.fresnel_rt (R and T as two loops, k_t^2 computed once)", lambda c: jo.fresnel_rt(c, e1, e2), False, c)
     v = jnp.asarray(np.stack([base, 1 - base, base * 0.5], -1))
     w = jnp.asarray(np.array([0.2, 0.3, 0.5], np.float32))
     run_rows("dot of 3-vectors, jnp.sum(a * b, axis=-1)", lambda v: jnp.sum(v * w[None, :], axis=-1), False, v)

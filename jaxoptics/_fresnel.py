@@ -155,7 +155,7 @@ def _prepare(cos_i, eta1, eta2, *, allow_complex: bool):
     return cos_i, eta1, jnp.broadcast_to(eta2, shape)
 
 
-def _kt_squared(ki, eta1, eta2, sin_sq=None):
+def _kt_squared(ki, eta1, eta2, sin_sq=None, q_given=None):
     """k_t^2 = eta2^2 - eta1^2 sin^2, with diff = eta2^2 - eta1^2 and m = k_i^2 - eta1^2.
 
     No `1 - cos^2` anywhere (it loses everything at grazing incidence). Two forms of k_t^2, each
@@ -181,6 +181,8 @@ def _kt_squared(ki, eta1, eta2, sin_sq=None):
     far = e1r > 2 * e2r
     q_close = diff + ki * ki
     q = jnp.where(far, eta2 * eta2 + m_direct, q_close)
+    if q_given is not None:  # the same value, computed once elsewhere (see `_rt_two_loops`)
+        q = q_close = q_given
     m = jnp.where(far | (e2r >= e1r), m_direct, q_close - eta2 * eta2)
     return q, diff, m
 
@@ -202,7 +204,7 @@ class _Terms(NamedTuple):
     valid: jnp.ndarray
 
 
-def _terms(cos_i, eta1, eta2, sin_sq=None) -> _Terms:
+def _terms(cos_i, eta1, eta2, sin_sq=None, q_given=None) -> _Terms:
     """Shared intermediates; `eta2` real (fast real path) or complex. `sin_sq`, if given, is
     sin^2 of the angle of incidence from a cross product (see `_kt_squared`)."""
     c = _abs_cos(cos_i)
@@ -214,7 +216,7 @@ def _terms(cos_i, eta1, eta2, sin_sq=None) -> _Terms:
     else:
         valid = _positive_finite(eta1) & _positive_finite(eta2) & (c < jnp.inf)
     ki = eta1 * c
-    q, diff, m = _kt_squared(ki, eta1, eta2, sin_sq)
+    q, diff, m = _kt_squared(ki, eta1, eta2, sin_sq, q_given)
     if jnp.iscomplexobj(q):
         # the complex square root is singular at 0 (the critical angle of an index with k == 0)
         kt = sqrt_where(q, q != 0)
@@ -338,15 +340,39 @@ def _powers(t: _Terms, eta1, eta2):
 def _sp_rt(cos_i, eta1, eta2):
     """(R_s, R_p, T_s, T_p) for real or complex eta2, NaN for invalid elements."""
     if not jnp.iscomplexobj(eta2):
-        return _sp_rt_real(cos_i, eta1, eta2)
+        return _sp_rt_real(cos_i, eta1, eta2, _q_real(cos_i, eta1, eta2))
     t = _terms(cos_i, eta1, eta2)
     return _nan_where_invalid(t.valid, *_powers(t, eta1, eta2))
+
+
+def _q_real(cos_i, eta1, eta2):
+    return _kt_squared(eta1 * _abs_cos(cos_i), eta1, eta2)[0]
 
 
 @jax.custom_jvp
-def _sp_rt_real(cos_i, eta1, eta2):
-    t = _terms(cos_i, eta1, eta2)
+def _sp_rt_real(cos_i, eta1, eta2, q):
+    # q = k_t^2, computed by `_q_real` from the same inputs (passed in so that `_rt_two_loops` can
+    # compute it once for two loops); it is not differentiated separately (the rule below covers
+    # the whole dependence on cos_i, eta1 and eta2).
+    t = _terms(cos_i, eta1, eta2, q_given=q)
     return _nan_where_invalid(t.valid, *_powers(t, eta1, eta2))
+
+
+def _rt_two_loops(cos_i, eta1, eta2):
+    """(R_s, R_p, T_s, T_p), real eta2, as two fused loops instead of about ten.
+
+    XLA on the CPU has no multi-output loop fusion: the quotients that both R and T need are
+    otherwise each written to memory and read back (measured: `fresnel_rt` 12 ns/element against
+    1.5 for `fresnel`, 11 fused loops). Here k_t^2 is computed once and materialized (so both loops
+    make the same TIR decision), and the transmittance loop recomputes the rest from inputs passed
+    through an optimization barrier, which XLA cannot identify with the reflectance loop's (so no
+    common subexpression ties them together again). R and T then each carry their own roundings,
+    and R + T - 1 is within a few ulps of 0 instead of exactly so.
+    """
+    q = jax.lax.optimization_barrier(_q_real(cos_i, eta1, eta2))
+    R_s, R_p, _, _ = _sp_rt_real(cos_i, eta1, eta2, q)
+    _, _, T_s, T_p = _sp_rt_real(*jax.lax.optimization_barrier((cos_i, eta1, eta2, q)))
+    return R_s, R_p, T_s, T_p
 
 
 def _sp_rt_real_jvp(primals, tangents):
@@ -369,8 +395,8 @@ def _sp_rt_real_jvp(primals, tangents):
     elements; d|c|/dc = +1 at c = 0 (`_abs_cos`). The coefficients are selected to 0 *before*
     multiplying the tangents, so the transposed (reverse-mode) map has no 0 * inf either.
     """
-    cos_i, eta1, eta2 = primals
-    t = _terms(cos_i, eta1, eta2)
+    cos_i, eta1, eta2, q = primals
+    t = _terms(cos_i, eta1, eta2, q_given=q)
     out = _nan_where_invalid(t.valid, *_powers(t, eta1, eta2))
     r_s, r_p = _r_amplitudes(t)
     live = t.ok & t.valid & ~t.tir & (t.kt > 0)
@@ -456,7 +482,10 @@ def fresnel_rt(cos_i, eta1, eta2):
     **Edge cases:** `T = 0` under TIR; `T = 1` when `eta1 == eta2`; NaN for invalid elements.
     """
     cos_i, eta1, eta2 = _prepare(cos_i, eta1, eta2, allow_complex=True)
-    R_s, R_p, T_s, T_p = _sp_rt(cos_i, eta1, eta2)
+    if jnp.iscomplexobj(eta2):
+        R_s, R_p, T_s, T_p = _sp_rt(cos_i, eta1, eta2)
+    else:
+        R_s, R_p, T_s, T_p = _rt_two_loops(cos_i, eta1, eta2)
     return 0.5 * (R_s + R_p), 0.5 * (T_s + T_p)
 
 

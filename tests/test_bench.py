@@ -26,7 +26,7 @@ def test_bench_runs_and_reports_every_method(tmp_path):
     assert json.loads((tmp_path / "bench.json").read_text())["kernels"]
     limits = {r["method"] for r in report["limits"]}
     for m in ("copy (x * 2)", "copy (x * 2), input donated", "fresnel, exact (jaxoptics), input donated",
-              "fresnel_rt, R and T (two outputs sharing divisions)", "dot of 3-vectors, written out"):
+              "R and T from one shared graph (two outputs sharing quotients)", "dot of 3-vectors, written out"):
         assert m in limits, m
     assert all(r["fusions"] >= 1 and r["run_s"] > 0 for r in report["limits"])
     assert "What bounds XLA on the CPU" in text
@@ -59,3 +59,5 @@ def test_single_output_kernels_compile_to_one_loop():
         ("reflect", lambda i: jo.reflect(i, n), (i,)),
     ):
         assert _fusions(jax.jit(f).lower(*args).compile()) == 1, name
+    # R and T: one loop each (plus the one that writes k_t^2 for both)
+    assert _fusions(jax.jit(lambda c: jo.fresnel_rt(c, 1.5, 1.0)).lower(c).compile()) <= 3
