@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _validate as V
-from ._fresnel import _positive_finite, _powers, _schlick_from_r0, _terms, _valid_index
+from ._fresnel import _kt_squared, _positive_finite, _powers, _schlick_from_r0, _terms, _valid_index
 from ._refract import METHODS, _dot, _refracted, _rsqrt_positive, _valid_vectors, _vectors
 
 OUTPUTS = ("r", "t", "tir", "R", "T", "R_s", "R_p")
@@ -120,7 +120,18 @@ def interface(i, n, eta1, eta2, *, spec: InterfaceSpec = DEFAULT_SPEC) -> Intera
     if ("t" in want or "tir" in want) and spec.method == "degreve" and spec.tir_possible:
         cr = jnp.cross(i, n)
         s2 = _dot(cr, cr)
-    tm = _terms(c, e1, e2, s2) if need_terms else None
+    # R and T both wanted (exact, real index): compute k_t^2 once, materialized, and T in a loop of
+    # its own on inputs behind an optimization barrier. XLA on the CPU has no multi-output loop
+    # fusion, and R and T sharing every quotient made about ten loops (see `fresnel_rt`).
+    split_rt = (spec.fresnel == "exact" and not spec.complex_index and "T" in want
+                and bool(want & {"R", "R_s", "R_p"}))
+    q = None
+    if split_rt:
+        # c and sin^2 are materialized first and every loop reads those copies (left to itself
+        # XLA recomputes them in each loop, contracting multiply-adds differently).
+        c, s2 = jax.lax.optimization_barrier((c, s2))
+        q = jax.lax.optimization_barrier(_kt_squared(e1 * c, e1, e2, s2)[0])
+    tm = _terms(c, e1, e2, s2, q_given=q) if need_terms else None
     tir = tm.tir if (tm is not None and spec.tir_possible) else None
 
     if "t" in want:
@@ -134,8 +145,17 @@ def interface(i, n, eta1, eta2, *, spec: InterfaceSpec = DEFAULT_SPEC) -> Intera
 
     if want & {"R", "T", "R_s", "R_p"}:
         if spec.fresnel == "exact":
-            tm_sel = tm if spec.tir_possible else tm._replace(tir=jnp.zeros_like(tm.ok))
-            R_s, R_p, T_s, T_p = _powers(tm_sel, e1, e2)
+            no_tir = lambda x: x if spec.tir_possible else x._replace(tir=jnp.zeros_like(x.ok))
+            R_s, R_p, T_s, T_p = _powers(no_tir(tm), e1, e2)
+            if split_rt:
+                # R and T each in a loop of its own, on copies of the inputs XLA cannot identify
+                # with each other's or with the direction loop's (the operand orders differ, so
+                # the two barriers are not merged); within one loop with `t`, R came out of a
+                # differently contracted k_i and broke R + T = 1 by 200 eps near the critical angle.
+                q_, c_, e1_, e2_, s2_ = jax.lax.optimization_barrier((q, c, e1, e2, s2))
+                R_s, R_p, _, _ = _powers(no_tir(_terms(c_, e1_, e2_, s2_, q_given=q_)), e1_, e2_)
+                c_, e1_, e2_, s2_, q_ = jax.lax.optimization_barrier((c, e1, e2, s2, q))
+                _, _, T_s, T_p = _powers(no_tir(_terms(c_, e1_, e2_, s2_, q_given=q_)), e1_, e2_)
             out.update(R=0.5 * (R_s + R_p), T=0.5 * (T_s + T_p), R_s=R_s, R_p=R_p)
         else:
             a = (e1 - e2) / (e1 + e2)
