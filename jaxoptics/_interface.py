@@ -16,7 +16,7 @@ import jax.numpy as jnp
 
 from . import _validate as V
 from ._fresnel import _kt_squared, _positive_finite, _powers, _schlick_from_r0, _terms, _valid_index
-from ._refract import METHODS, _dot, _refracted, _rsqrt_positive, _valid_vectors, _vectors
+from ._refract import METHODS, _cross, _dot, _refracted, _rsqrt_positive, _valid_vectors, _vectors
 
 OUTPUTS = ("r", "t", "tir", "R", "T", "R_s", "R_p")
 FRESNEL_MODELS = ("exact", "schlick", "schlick_tir")
@@ -118,7 +118,7 @@ def interface(i, n, eta1, eta2, *, spec: InterfaceSpec = DEFAULT_SPEC) -> Intera
     need_terms = bool(want & {"t", "tir"}) or (spec.fresnel != "schlick" and bool(want & {"R", "T", "R_s", "R_p"}))
     cr = s2 = None
     if ("t" in want or "tir" in want) and spec.method == "degreve" and spec.tir_possible:
-        cr = jnp.cross(i, n)
+        cr = _cross(i, n)
         s2 = _dot(cr, cr)
     # R and T both wanted (exact, real index): compute k_t^2 once, materialized, and T in a loop of
     # its own on inputs behind an optimization barrier. XLA on the CPU has no multi-output loop

@@ -62,6 +62,13 @@ def _vectors(i, n, *etas):
     return jnp.broadcast_to(i, shape), jnp.broadcast_to(n, shape), shape[:-1]
 
 
+def _cross(a, b):
+    # Written out component by component, like `_dot` (jnp.cross slices and concatenates).
+    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
+    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
+    return jnp.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
+
+
 def _rsqrt_positive(x):
     ok = x > 0
     return jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, x, 1)), 1)
@@ -171,7 +178,7 @@ def refract(i, n, eta1, eta2, *, method: str = "degreve", oliveira_c: float = 1.
     # sin^2 from the cross product: near normal incidence a cosine is within an ulp of 1 and has
     # lost the angle (c = 1 - theta^2/2), which matters when eta1 >> eta2 puts the critical angle
     # there (eta2/eta1 = 1e-3: theta_c = 1e-3 rad); |i x n|^2 keeps it to full relative accuracy.
-    cr = jnp.cross(i, n)
+    cr = _cross(i, n)
     s2 = _dot(cr, cr)[..., None]
     q, diff, _ = _kt_squared(ki, eta1, eta2, sin_sq=s2)  # (eta2 cos_t)^2; < 0 under TIR
     # One materialized q: without the barrier XLA may recompute q in several fusions, contracting
@@ -207,7 +214,7 @@ def _refracted(method, i, n, nf, c, ki, kt, diff, cr, eta1, eta2, oliveira_c):
         # cancels by a factor up to eta1/eta2 (about 1000 at normal incidence for 1000:1). So there
         # t = (eta1 i_tan - k_t n_f) / eta2 instead, with the tangential part of i from cross
         # products, i_tan = n x (i x n), whose normal component is zero to within eps * sin_i.
-        i_tan = jnp.cross(n, cr)
+        i_tan = _cross(n, cr)
         return jnp.where(eta1 > eta2, (eta1 * i_tan - kt * nf) / eta2, t)
     if method in ("heckbert", "bec"):
         r = eta1 / eta2
