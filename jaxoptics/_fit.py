@@ -28,13 +28,6 @@ def _reflectance(cos_i, eta1, eta2, polarization):
     return R_s if polarization == "s" else R_p
 
 
-def _fit_model(cos_i, eta1, eta2, polarization):
-    """What the fitter evaluates. Gauss-Newton spends its time on the Jacobian; for a real index the
-    kernels carry closed-form derivatives (see `_fresnel._sp_rt_real_jvp`), which took the
-    10^4-curve benchmark fit from 0.17 s to 0.11 s before the start was made cheaper too."""
-    return _reflectance(cos_i, eta1, eta2, polarization)
-
-
 def synthetic_reflectance(key, eta2, theta, *, eta1=1.0, polarization="unpolarized", noise=0.0):
     r"""Reflectance curves `R(theta)` for index `eta2`, with optional Gaussian noise.
 
@@ -170,7 +163,6 @@ def _start(theta, R, w, eta1, residual, absorbing, polarization):
 
     m = theta.shape[0]
     sub = np.unique(np.linspace(0, m - 1, min(m, 16)).round().astype(int))
-    all_cols = np.arange(m)
     score = lambda y, R1, w1: jnp.sum(residual(y, R1[sub], w1[sub], sub) ** 2)
     heur = jax.vmap(lambda R1: _heuristics(theta, R1, eta1, absorbing))(R)  # (B, 4, p)
     sse_heur = jax.vmap(lambda hs, w1, R1: jax.vmap(lambda y: score(y, R1, w1))(hs))(heur, w, R)
@@ -179,7 +171,7 @@ def _start(theta, R, w, eta1, residual, absorbing, polarization):
         # Refine the best grid point (scored on every angle) by the vertex of the parabola (in
         # log eta) through it and its neighbours: the start is then within a fraction of a percent
         # and Gauss-Newton needs 3 to 5 steps.
-        full = grid_sse(all_cols)
+        full = grid_sse(slice(None))
         K = grid.shape[0]
         k = jnp.clip(jnp.argmin(full, axis=1), 1, K - 2)
         s0, s1, s2 = (jnp.take_along_axis(full, (k + d)[:, None], axis=1)[:, 0] for d in (-1, 0, 1))
@@ -264,14 +256,14 @@ def _fit_one(theta, R, w, eta1, y0, *, polarization, absorbing, solver, max_step
     cos_i = jnp.cos(theta)
 
     def residual(y, _):
-        return (_fit_model(cos_i, eta1, _params_to_eta(y, absorbing), polarization) - R) * w
+        return (_reflectance(cos_i, eta1, _params_to_eta(y, absorbing), polarization) - R) * w
 
     sol = optx.least_squares(residual, solver, y0, max_steps=max_steps, throw=False)
     y = jnp.abs(sol.value)  # the physical branch
 
     def res_phys(q):  # residuals as a function of the physical parameters (eta, or n and k)
         eta2 = jax.lax.complex(q[0], q[1]) if absorbing else q[0]
-        return (_fit_model(cos_i, eta1, eta2, polarization) - R) * w
+        return (_reflectance(cos_i, eta1, eta2, polarization) - R) * w
 
     r = res_phys(y)
     cov, chi2 = _covariance(jax.jacfwd(res_phys)(y), r, sigma_given)
@@ -293,7 +285,7 @@ def _fit_batch(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, ma
         cos_i = jnp.cos(theta)
 
         def residual(y, R1, w1, cols):
-            return (_fit_model(cos_i[cols], eta1, _params_to_eta(y, absorbing), polarization) - R1) * w1
+            return (_reflectance(cos_i[cols], eta1, _params_to_eta(y, absorbing), polarization) - R1) * w1
 
         y0 = _start(theta, R, w, eta1, residual, absorbing, polarization)
     one = lambda R1, w1, y1: _fit_one(theta, R1, w1, eta1, y1, polarization=polarization, absorbing=absorbing,
