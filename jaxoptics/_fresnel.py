@@ -358,6 +358,17 @@ def _sp_rt_real(cos_i, eta1, eta2, q):
     return _nan_where_invalid(t.valid, *_powers(t, eta1, eta2))
 
 
+def _own_loop(*xs, order=0):
+    """Copies of `xs` that XLA cannot identify with the originals, nor with copies made with another
+    `order` (the operands pass an optimization barrier rotated by `order`, so two barriers are not
+    merged): what is computed from them gets a fused loop of its own. XLA on the CPU has no
+    multi-output loop fusion, so outputs sharing quotients are otherwise written to memory and read
+    back, one loop per shared value."""
+    k = order % len(xs)
+    ys = jax.lax.optimization_barrier(xs[k:] + xs[:k])
+    return ys[len(xs) - k:] + ys[:len(xs) - k]
+
+
 def _rt_two_loops(cos_i, eta1, eta2):
     """(R_s, R_p, T_s, T_p), real eta2, as two fused loops instead of about ten.
 
@@ -371,7 +382,7 @@ def _rt_two_loops(cos_i, eta1, eta2):
     """
     q = jax.lax.optimization_barrier(_q_real(cos_i, eta1, eta2))
     R_s, R_p, _, _ = _sp_rt_real(cos_i, eta1, eta2, q)
-    _, _, T_s, T_p = _sp_rt_real(*jax.lax.optimization_barrier((cos_i, eta1, eta2, q)))
+    _, _, T_s, T_p = _sp_rt_real(*_own_loop(cos_i, eta1, eta2, q))
     return R_s, R_p, T_s, T_p
 
 

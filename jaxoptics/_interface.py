@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _validate as V
-from ._fresnel import _kt_squared, _positive_finite, _powers, _schlick_from_r0, _terms, _valid_index
+from ._fresnel import _kt_squared, _own_loop, _positive_finite, _powers, _schlick_from_r0, _terms, _valid_index
 from ._refract import METHODS, _cross, _dot, _refracted, _rsqrt_positive, _valid_vectors, _vectors
 
 OUTPUTS = ("r", "t", "tir", "R", "T", "R_s", "R_p")
@@ -146,16 +146,17 @@ def interface(i, n, eta1, eta2, *, spec: InterfaceSpec = DEFAULT_SPEC) -> Intera
     if want & {"R", "T", "R_s", "R_p"}:
         if spec.fresnel == "exact":
             no_tir = lambda x: x if spec.tir_possible else x._replace(tir=jnp.zeros_like(x.ok))
-            R_s, R_p, T_s, T_p = _powers(no_tir(tm), e1, e2)
             if split_rt:
-                # R and T each in a loop of its own, on copies of the inputs XLA cannot identify
-                # with each other's or with the direction loop's (the operand orders differ, so
-                # the two barriers are not merged); within one loop with `t`, R came out of a
-                # differently contracted k_i and broke R + T = 1 by 200 eps near the critical angle.
-                q_, c_, e1_, e2_, s2_ = jax.lax.optimization_barrier((q, c, e1, e2, s2))
-                R_s, R_p, _, _ = _powers(no_tir(_terms(c_, e1_, e2_, s2_, q_given=q_)), e1_, e2_)
-                c_, e1_, e2_, s2_, q_ = jax.lax.optimization_barrier((c, e1, e2, s2, q))
-                _, _, T_s, T_p = _powers(no_tir(_terms(c_, e1_, e2_, s2_, q_given=q_)), e1_, e2_)
+                # R and T each in a loop of its own, apart from the direction loop too: within one
+                # loop with `t`, R came out of a differently contracted k_i and broke R + T = 1 by
+                # 200 eps near the critical angle.
+                def powers_in_own_loop(order):
+                    c_, e1_, e2_, s2_, q_ = _own_loop(c, e1, e2, s2, q, order=order)
+                    return _powers(no_tir(_terms(c_, e1_, e2_, s2_, q_given=q_)), e1_, e2_)
+
+                (R_s, R_p, _, _), (_, _, T_s, T_p) = powers_in_own_loop(4), powers_in_own_loop(0)
+            else:
+                R_s, R_p, T_s, T_p = _powers(no_tir(tm), e1, e2)
             out.update(R=0.5 * (R_s + R_p), T=0.5 * (T_s + T_p), R_s=R_s, R_p=R_p)
         else:
             a = (e1 - e2) / (e1 + e2)
