@@ -239,3 +239,28 @@ def test_cli_fit_file_and_errors(capsys, tmp_path):
     assert main(["fit", str(bad)]) == 2
     assert "bad.csv, line 3" in capsys.readouterr().err
 
+
+
+def test_one_column_solver_matches_lineax_least_squares():
+    """The closed-form one-column solver used by the default Gauss-Newton agrees with lineax's QR
+    (least squares) and SVD (minimum norm, for the transposed 1 x m system), and returns the
+    pseudo-inverse's 0 for a zero column."""
+    import lineax as lx
+    from jaxoptics._fit import OneColumnLeastSquares
+
+    rng = np.random.default_rng(3)
+    a, b, c = rng.normal(size=(90, 1)), rng.normal(size=90), rng.normal(size=1)
+    op = lx.MatrixLinearOperator(jnp.asarray(a))
+    x = lx.linear_solve(op, jnp.asarray(b), OneColumnLeastSquares()).value
+    np.testing.assert_allclose(x, lx.linear_solve(op, jnp.asarray(b), lx.QR()).value, rtol=1e-12)
+    np.testing.assert_allclose(x, np.linalg.lstsq(a, b, rcond=None)[0], rtol=1e-12)
+    y = lx.linear_solve(op.T, jnp.asarray(c), OneColumnLeastSquares()).value
+    np.testing.assert_allclose(y, lx.linear_solve(op.T, jnp.asarray(c), lx.SVD()).value, rtol=1e-12)
+    np.testing.assert_allclose(a.T @ np.asarray(y), c, rtol=1e-12)
+    zero = lx.MatrixLinearOperator(jnp.zeros((90, 1)))
+    assert float(lx.linear_solve(zero, jnp.asarray(b), OneColumnLeastSquares()).value[0]) == 0.0
+    # differentiating through the solve uses its transpose: d x / d b = a^T / (a . a)
+    g = jax.grad(lambda bb: lx.linear_solve(op, bb, OneColumnLeastSquares()).value[0])(jnp.asarray(b))
+    np.testing.assert_allclose(g, a[:, 0] / np.sum(a * a), rtol=1e-12)
+    with pytest.raises(ValueError, match="one column or one row"):
+        lx.linear_solve(lx.MatrixLinearOperator(jnp.eye(2)), jnp.ones(2), OneColumnLeastSquares())
