@@ -43,3 +43,4 @@ from ._interface import InterfaceSpec as InterfaceSpec
 from ._interface import SceneSpec as SceneSpec
 from ._interface import interface as interface
 from ._interface import scene_interface as scene_interface
+from ._memory import keep_freed_memory as keep_freed_memory

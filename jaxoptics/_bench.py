@@ -76,12 +76,20 @@ def bench_fit(*, quick=False, progress=None):
     etas = np.linspace(1.01, 4.0, n_curves)
     R = np.asarray(jo.synthetic_reflectance(jax.random.PRNGKey(0), jnp.asarray(etas), jnp.asarray(theta), noise=1e-3))
     rows = []
-    for name, solver in (("jaxoptics fit_eta (default: Gauss-Newton, LM refit)", None),
-                         ("jaxoptics fit_eta, Gauss-Newton only", optx.GaussNewton(rtol=1e-10, atol=1e-10)),
-                         ("jaxoptics fit_eta, Levenberg-Marquardt", optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10))):
-        comp, run, _ = timeit(lambda: jo.fit_eta(theta, R, solver=solver).eta, repeats=3 if quick else 5)
+    for name, solver, keep in (
+            ("jaxoptics fit_eta (default: Gauss-Newton, LM refit)", None, False),
+            ("jaxoptics fit_eta (default), freed memory kept (jo.keep_freed_memory)", None, True),
+            ("jaxoptics fit_eta, Gauss-Newton (lineax's default QR solve) only", optx.GaussNewton(rtol=1e-10, atol=1e-10), False),
+            ("jaxoptics fit_eta, Levenberg-Marquardt", optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10), False)):
+        if keep and not jo.keep_freed_memory(True):
+            continue
+        try:
+            comp, run, _ = timeit(lambda: jo.fit_eta(theta, R, solver=solver).eta, repeats=3 if quick else 7)
+        finally:
+            if keep:
+                jo.keep_freed_memory(False)
         res = jo.fit_eta(theta, R, solver=solver)
-        rows.append(dict(method=name, curves=n_curves, compile_s=comp, run_s=run, per_curve_s=run / n_curves,
+        rows.append(dict(method=name, curves=n_curves, compile_s=None if keep else comp,  # kept: compiled above run_s=run, per_curve_s=run / n_curves,
                          converged=float(np.mean(np.asarray(res.converged))),
                          max_steps=int(np.max(np.asarray(res.num_steps))),
                          max_abs_z=float(np.max(np.abs((np.asarray(res.eta) - etas) / np.asarray(res.stderr))))))
@@ -97,14 +105,17 @@ def bench_fit(*, quick=False, progress=None):
     jx = np.asarray(jo.fit_eta(theta, R[sel]).eta)
     for label, opts in (("default method='trf', default tolerances", {}),
                         ("method='lm' (MINPACK), xtol=ftol=1e-10", dict(method="lm", xtol=1e-10, ftol=1e-10))):
-        t = time.perf_counter()
-        est = []
-        for k in sel:
-            s = np.sqrt(np.clip(R[k, 0], 0.0, 0.98))
-            x0 = (1 + s) / (1 - s)  # the normal-incidence inversion, a good start
-            out = least_squares(lambda x: _np_fresnel_unpolarized(c, 1.0, x[0]) - R[k], [x0], **opts)
-            est.append(out.x[0])
-        dt = time.perf_counter() - t
+        passes = []
+        for _ in range(3):  # the median of three passes over the curves
+            t = time.perf_counter()
+            est = []
+            for k in sel:
+                s = np.sqrt(np.clip(R[k, 0], 0.0, 0.98))
+                x0 = (1 + s) / (1 - s)  # the normal-incidence inversion, a good start
+                out = least_squares(lambda x: _np_fresnel_unpolarized(c, 1.0, x[0]) - R[k], [x0], **opts)
+                est.append(out.x[0])
+            passes.append(time.perf_counter() - t)
+        dt = float(np.median(passes))
         rows.append(dict(method=f"scipy.optimize.least_squares ({label}), NumPy model, loop over {n_scipy} of the curves",
                          curves=n_scipy, compile_s=None, run_s=dt, per_curve_s=dt / n_scipy, converged=None, max_steps=None,
                          max_abs_diff_vs_jaxoptics=float(np.max(np.abs(np.asarray(est) - jx)))))
@@ -196,7 +207,7 @@ def run(*, quick=False, sections=("kernels", "fit", "devices"), out_dir="bench_o
     out.mkdir(parents=True, exist_ok=True)
     report = {"machine": machine_description(), "quick": quick}
     md = [f"Machine: {report['machine']}", ""]
-    total = 5 * ("fit" in sections) + 3 * ("devices" in sections) + 23 * ("kernels" in sections)
+    total = 6 * ("fit" in sections) + 3 * ("devices" in sections) + 24 * ("kernels" in sections)
     with tqdm(total=total, desc="bench", unit="step") as bar:
         if "kernels" in sections:
             rows = bench_kernels(quick=quick, progress=bar, sizes=sizes, mitsuba=mitsuba)
@@ -443,7 +454,7 @@ def bench_limits(*, quick=False, progress=None, n=None):
     base = rng.uniform(0, 1, N).astype(np.float32)
     rows = []
 
-    def run_rows(name, f, donate, arg):
+    def run_rows(name, f, donate, arg, suffix=""):
         fj = jax.jit(f, donate_argnums=0) if donate else jax.jit(f)
         inputs = [jnp.array(arg) for _ in range(repeats + 1)] if donate else None
         compiled = fj.lower(arg).compile()
@@ -453,17 +464,40 @@ def bench_limits(*, quick=False, progress=None, n=None):
             comp, run, _ = timeit(lambda: compiled(next(it)), repeats=repeats)
         else:
             comp, run, _ = timeit(lambda: compiled(arg), repeats=repeats)
-        rows.append(dict(group="limits", method=name + (", input donated" if donate else ""), dtype="float32", n=N,
+        rows.append(dict(group="limits", method=name + (", input donated" if donate else "") + suffix, dtype="float32", n=N,
                          compile_s=comp, run_s=run, ns_per_element=1e9 * run / N, fusions=_fusions(compiled)))
 
+    def numpy_row(suffix):
+        comp, run, _ = timeit(lambda: _np_fresnel_unpolarized(base, np.float32(e1), np.float32(e2)), repeats=repeats,
+                              warmup=True)
+        rows.append(dict(group="limits", method="NumPy textbook fresnel" + suffix, dtype="float32", n=N, compile_s=None,
+                         run_s=run, ns_per_element=1e9 * run / N, fusions=None))
+
     c = jnp.asarray(base)
-    for name, f in (("copy (x * 2)", lambda c: c * 2),
-                    ("fresnel, exact (jaxoptics)", lambda c: jo.fresnel(c, e1, e2)),
-                    ("naive JAX textbook fresnel", lambda c: _naive_jax_fresnel(c, e1, e2))):
+    kernels = (("copy (x * 2)", lambda c: c * 2),
+               ("fresnel, exact (jaxoptics)", lambda c: jo.fresnel(c, e1, e2)),
+               ("naive JAX textbook fresnel", lambda c: _naive_jax_fresnel(c, e1, e2)))
+    for name, f in kernels:
         for donate in (False, True):
             run_rows(name, f, donate, c)
         if progress:
             progress.update(1)
+    numpy_row("")
+    # The same with freed memory kept mapped (glibc mallopt, `jo.keep_freed_memory`): no page
+    # faults on fresh output buffers, for JAX and NumPy alike. Restored to glibc's defaults after.
+    if jo.keep_freed_memory(True):
+        try:
+            for name, f in kernels:
+                run_rows(name, f, False, c, ", freed memory kept")
+            run_rows("jo.fresnel_rt (R and T as two loops, k_t^2 computed once)", lambda c: jo.fresnel_rt(c, e1, e2),
+                     False, c, ", freed memory kept")
+            numpy_row(", freed memory kept")
+        finally:
+            jo.keep_freed_memory(False)
+    if progress:
+        progress.update(1)
+    else:
+        rows.append(dict(group="limits", method="freed memory kept: not available (not glibc), skipped", n=0))
     from ._fresnel import _sp_rt
 
     def shared_rt(c):  # R and T from one graph: the quotients both need feed two outputs
@@ -485,7 +519,11 @@ def bench_limits(*, quick=False, progress=None, n=None):
 def limits_table(rows) -> str:
     out = ["| what | elements/s | ns/element | XLA fused loops |", "| --- | ---: | ---: | ---: |"]
     for r in rows:
-        out.append(f"| {r['method']} | {r['n'] / r['run_s']:.3g} | {r['ns_per_element']:.3g} | {r['fusions']} |")
+        if not r.get("n"):
+            out.append(f"| {r['method']} | | | |")
+            continue
+        fus = "" if r.get("fusions") is None else r["fusions"]
+        out.append(f"| {r['method']} | {r['n'] / r['run_s']:.3g} | {r['ns_per_element']:.3g} | {fus} |")
     return "\n".join(out)
 
 
