@@ -89,7 +89,7 @@ def bench_fit(*, quick=False, progress=None):
             if keep:
                 jo.keep_freed_memory(False)
         res = jo.fit_eta(theta, R, solver=solver)
-        rows.append(dict(method=name, curves=n_curves, compile_s=None if keep else comp,  # kept: compiled above run_s=run, per_curve_s=run / n_curves,
+        rows.append(dict(method=name, curves=n_curves, compile_s=None if keep else comp, run_s=run, per_curve_s=run / n_curves,
                          converged=float(np.mean(np.asarray(res.converged))),
                          max_steps=int(np.max(np.asarray(res.num_steps))),
                          max_abs_z=float(np.max(np.abs((np.asarray(res.eta) - etas) / np.asarray(res.stderr))))))
@@ -483,6 +483,14 @@ def bench_limits(*, quick=False, progress=None, n=None):
         if progress:
             progress.update(1)
     numpy_row("")
+    # the fused interface kernel against its most expensive part (vector outputs: 3x the bytes)
+    t_ = rng.uniform(0, np.pi / 2, N)
+    iv = jnp.asarray(np.stack([np.sin(t_), np.zeros_like(t_), -np.cos(t_)], -1).astype(np.float32))
+    nz = jnp.asarray([0.0, 0.0, 1.0], jnp.float32)
+    vector_kernels = (("refract (degreve)", lambda i: jo.refract(i, nz, e1, e2)),
+                      ("interface, full (r, t, tir, R, T)", lambda i: jo.interface(i, nz, e1, e2, spec=jo.InterfaceSpec())))
+    for name, f in vector_kernels:
+        run_rows(name, f, False, iv)
     # The same with freed memory kept mapped (glibc mallopt, `jo.keep_freed_memory`): no page
     # faults on fresh output buffers, for JAX and NumPy alike. Restored to glibc's defaults after.
     if jo.keep_freed_memory(True):
@@ -492,6 +500,8 @@ def bench_limits(*, quick=False, progress=None, n=None):
             run_rows("jo.fresnel_rt (R and T as two loops, k_t^2 computed once)", lambda c: jo.fresnel_rt(c, e1, e2),
                      False, c, ", freed memory kept")
             numpy_row(", freed memory kept")
+            for name, f in vector_kernels:
+                run_rows(name, f, False, iv, ", freed memory kept")
         finally:
             jo.keep_freed_memory(False)
     if progress:

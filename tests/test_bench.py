@@ -107,3 +107,17 @@ def test_keep_freed_memory_removes_page_faults_of_fresh_outputs():
     assert out["1"][0] == "True"
     assert out["0"][1] > 5000, out  # 40 MB / 4 KiB = 9766 fresh pages per call
     assert out["1"][1] < 500, out
+
+
+def test_fit_bench_reports_speed_and_scipy_rows(tmp_path):
+    """The fit section: every row has its timing, all curves converge, and the table carries the
+    speed-up against the scipy loop."""
+    report = run(quick=True, sections=("fit",), out_dir=tmp_path)
+    rows = report["fit"]
+    jx = [r for r in rows if r["method"].startswith("jaxoptics")]
+    assert len(jx) >= 3
+    for r in jx:
+        assert r["run_s"] > 0 and r["per_curve_s"] > 0 and r["converged"] == 1.0, r
+    assert any(r["method"].startswith("scipy") and r.get("per_curve_s", 0) > 0 for r in rows)
+    text = (tmp_path / "bench.md").read_text()
+    assert "| jaxoptics fit_eta (default: Gauss-Newton, LM refit) | 1000 |" in text
