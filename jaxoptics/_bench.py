@@ -33,9 +33,11 @@ def machine_description() -> str:
             f"jax {jax.__version__} ({jax.default_backend()}), numpy {np.__version__}")
 
 
-def timeit(fn, *, repeats=5, warmup=True):
+def timeit(fn, *, repeats=5, warmup=True, settle=0):
     """(compile_s, median_run_s, all runs): the first call (tracing + compilation + one run) is
-    timed apart; compile time is reported as first call minus the median run."""
+    timed apart; compile time is reported as first call minus the median run. `settle` more
+    untimed calls follow it (with freed memory kept, each thread's malloc arena grows to its
+    working size in the first few calls, and those still page-fault)."""
     import jax
 
     first = None
@@ -43,6 +45,8 @@ def timeit(fn, *, repeats=5, warmup=True):
         t = time.perf_counter()
         jax.block_until_ready(fn())
         first = time.perf_counter() - t
+    for _ in range(settle):
+        jax.block_until_ready(fn())
     runs = []
     for _ in range(repeats):
         t = time.perf_counter()
@@ -81,13 +85,14 @@ def bench_fit(*, quick=False, progress=None):
             ("jaxoptics fit_eta (default), freed memory kept (jo.keep_freed_memory)", None, True),
             ("jaxoptics fit_eta, Gauss-Newton (lineax's default QR solve) only", optx.GaussNewton(rtol=1e-10, atol=1e-10), False),
             ("jaxoptics fit_eta, Levenberg-Marquardt", optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10), False)):
-        if keep and not jo.keep_freed_memory(True):
+        if keep and not jo.keep_freed_memory():
             continue
         try:
-            comp, run, _ = timeit(lambda: jo.fit_eta(theta, R, solver=solver).eta, repeats=3 if quick else 7)
+            comp, run, _ = timeit(lambda: jo.fit_eta(theta, R, solver=solver).eta, repeats=3 if quick else 7,
+                                  settle=10 if keep else 0)
         finally:
             if keep:
-                jo.keep_freed_memory(False)
+                jo.keep_freed_memory(enable=False)
         res = jo.fit_eta(theta, R, solver=solver)
         rows.append(dict(method=name, curves=n_curves, compile_s=None if keep else comp, run_s=run, per_curve_s=run / n_curves,
                          converged=float(np.mean(np.asarray(res.converged))),
@@ -463,13 +468,13 @@ def bench_limits(*, quick=False, progress=None, n=None):
             it = iter(inputs)
             comp, run, _ = timeit(lambda: compiled(next(it)), repeats=repeats)
         else:
-            comp, run, _ = timeit(lambda: compiled(arg), repeats=repeats)
+            comp, run, _ = timeit(lambda: compiled(arg), repeats=repeats, settle=10 if suffix else 0)
         rows.append(dict(group="limits", method=name + (", input donated" if donate else "") + suffix, dtype="float32", n=N,
                          compile_s=comp, run_s=run, ns_per_element=1e9 * run / N, fusions=_fusions(compiled)))
 
     def numpy_row(suffix):
         comp, run, _ = timeit(lambda: _np_fresnel_unpolarized(base, np.float32(e1), np.float32(e2)), repeats=repeats,
-                              warmup=True)
+                              warmup=True, settle=10 if suffix else 0)
         rows.append(dict(group="limits", method="NumPy textbook fresnel" + suffix, dtype="float32", n=N, compile_s=None,
                          run_s=run, ns_per_element=1e9 * run / N, fusions=None))
 
@@ -493,7 +498,7 @@ def bench_limits(*, quick=False, progress=None, n=None):
         run_rows(name, f, False, iv)
     # The same with freed memory kept mapped (glibc mallopt, `jo.keep_freed_memory`): no page
     # faults on fresh output buffers, for JAX and NumPy alike. Restored to glibc's defaults after.
-    if jo.keep_freed_memory(True):
+    if jo.keep_freed_memory():
         try:
             for name, f in kernels:
                 run_rows(name, f, False, c, ", freed memory kept")
@@ -503,7 +508,7 @@ def bench_limits(*, quick=False, progress=None, n=None):
             for name, f in vector_kernels:
                 run_rows(name, f, False, iv, ", freed memory kept")
         finally:
-            jo.keep_freed_memory(False)
+            jo.keep_freed_memory(enable=False)
     if progress:
         progress.update(1)
     else:

@@ -71,16 +71,16 @@ def test_single_output_kernels_compile_to_one_loop():
 
 
 _FAULTS = """
-import resource, sys, jax, jax.numpy as jnp, jaxoptics as jo
-applied = jo.keep_freed_memory(sys.argv[1] == "1")
+import resource, statistics, sys, jax, jax.numpy as jnp, jaxoptics as jo
+applied = jo.keep_freed_memory(enable=sys.argv[1] == "1")
 f = jax.jit(lambda c: c * 2)
 c = jnp.ones(10_000_000, jnp.float32)  # 40 MB: above glibc's largest mmap threshold (32 MiB)
-for _ in range(3):  # the heap grows to its working size in the first calls
+faults = []
+for _ in range(30):  # each thread's arena grows to its working size in its first calls
+    r0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     jax.block_until_ready(f(c))
-r0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-for _ in range(5):
-    jax.block_until_ready(f(c))
-print(applied, (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r0) / 5)
+    faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r0)
+print(applied, statistics.median(faults[-10:]))
 """
 
 
@@ -97,7 +97,7 @@ def test_keep_freed_memory_removes_page_faults_of_fresh_outputs():
     if not libc or not hasattr(ctypes.CDLL(libc), "gnu_get_libc_version"):
         import jaxoptics as jo
 
-        assert jo.keep_freed_memory() is False  # documented: not applied off glibc
+        assert jo.keep_freed_memory(enable=False) is False  # documented: not applied off glibc
         return
     out = {}
     for flag in ("0", "1"):
@@ -106,7 +106,7 @@ def test_keep_freed_memory_removes_page_faults_of_fresh_outputs():
         out[flag] = (applied, float(faults))
     assert out["1"][0] == "True"
     assert out["0"][1] > 5000, out  # 40 MB / 4 KiB = 9766 fresh pages per call
-    assert out["1"][1] < 500, out
+    assert out["1"][1] < 100, out  # (measured: 1)
 
 
 def test_fit_bench_reports_speed_and_scipy_rows(tmp_path):
