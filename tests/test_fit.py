@@ -264,3 +264,18 @@ def test_one_column_solver_matches_lineax_least_squares():
     np.testing.assert_allclose(g, a[:, 0] / np.sum(a * a), rtol=1e-12)
     with pytest.raises(ValueError, match="one column or one row"):
         lx.linear_solve(lx.MatrixLinearOperator(jnp.eye(2)), jnp.ones(2), OneColumnLeastSquares())
+
+
+def test_first_argmin_matches_numpy_argmin():
+    """The start's argmin (two plain reductions instead of XLA's (value, index) reduction) agrees
+    with NumPy's: first index of the minimum, ties included; NaN never chosen; all-NaN rows 0."""
+    from jaxoptics._fit import _first_argmin
+
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=(200, 48))
+    x[:50] = np.round(x[:50])  # many ties
+    x[50:60, ::3] = np.nan
+    got = np.asarray(_first_argmin(jnp.asarray(x)))
+    np.testing.assert_array_equal(got, np.nanargmin(x, axis=1))
+    assert int(_first_argmin(jnp.full((1, 5), np.nan))[0]) == 0
+    assert int(_first_argmin(jnp.asarray([[3.0, np.inf, 1.0, 1.0]]))[0]) == 2
