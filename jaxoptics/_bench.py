@@ -509,10 +509,10 @@ def bench_limits(*, quick=False, progress=None, n=None):
                 run_rows(name, f, False, iv, ", freed memory kept")
         finally:
             jo.keep_freed_memory(enable=False)
-    if progress:
-        progress.update(1)
     else:
         rows.append(dict(group="limits", method="freed memory kept: not available (not glibc), skipped", n=0))
+    if progress:
+        progress.update(1)
     from ._fresnel import _sp_rt
 
     def shared_rt(c):  # R and T from one graph: the quotients both need feed two outputs
