@@ -20,6 +20,7 @@ from ._refract import refract as refract
 
 __version__ = "0.1.0"
 from ._fit import FitResult as FitResult
+from ._fit import OneColumnLeastSquares as OneColumnLeastSquares
 from ._fit import fit_eta as fit_eta
 from ._fit import synthetic_reflectance as synthetic_reflectance
 from ._materials import MATERIALS as MATERIALS

@@ -514,9 +514,10 @@ def fit_eta(theta, R, *, eta1=1.0, polarization="unpolarized", sigma=None, init=
       inversion on both branches, the onset of a TIR plateau, the Brewster minimum).
     - `absorbing`: fit a complex index `n + ik` (metals, absorbing media).
     - `solver`: an optimistix least-squares solver. Default: `optimistix.GaussNewton` for a real
-      index (curves it does not converge on are refitted with `optimistix.LevenbergMarquardt` in a
-      second batched call), `optimistix.LevenbergMarquardt` for a complex one; tolerances from the
-      dtype. The choice was measured: see `_default_solver`.
+      index, with `OneColumnLeastSquares` as its linear solver (curves it does not converge on are
+      refitted with `optimistix.LevenbergMarquardt` in a second batched call),
+      `optimistix.LevenbergMarquardt` for a complex one; tolerances from the dtype. The choice was
+      measured: see `_default_solver`.
     - `max_steps`: solver iteration cap; hitting it gives `converged=False`.
 
     **Returns:** a `FitResult` (see its fields) with the batch shape of `R`.

@@ -246,7 +246,7 @@ def test_one_column_solver_matches_lineax_least_squares():
     (least squares) and SVD (minimum norm, for the transposed 1 x m system), and returns the
     pseudo-inverse's 0 for a zero column."""
     import lineax as lx
-    from jaxoptics._fit import OneColumnLeastSquares
+    OneColumnLeastSquares = jo.OneColumnLeastSquares
 
     rng = np.random.default_rng(3)
     a, b, c = rng.normal(size=(90, 1)), rng.normal(size=90), rng.normal(size=1)
