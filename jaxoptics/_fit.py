@@ -534,13 +534,14 @@ def fit_eta(theta, R, *, eta1=1.0, polarization="unpolarized", sigma=None, init=
     if polarization not in POLARIZATIONS:
         raise ValueError(f"polarization must be one of {POLARIZATIONS}, got {polarization!r}")
     p = 2 if absorbing else 1
-    if _is_concrete(theta, R, sigma):
-        _warn_if_x64_off(theta, R)
-        R = jnp.asarray(V.as_real(R, "R"))  # checked where it will be fitted, by one compiled reduction
+    concrete = _is_concrete(theta, R, sigma)
+    if concrete:
+        _warn_if_x64_off(theta, R)  # looks at the dtype the caller passed, before conversion
+    R = jnp.asarray(V.as_real(R, "R"))
+    if concrete:  # checked where it will be fitted, by one compiled reduction
         check_curves(theta, R, sigma, n_params=p)
     if not np.isscalar(eta1) and np.ndim(eta1) != 0:
         raise ValueError(f"eta1 must be a scalar, got shape {np.shape(eta1)}")
-    R = jnp.asarray(V.as_real(R, "R"))
     theta = jnp.asarray(V.as_real(theta, "theta"))
     dt = V.float_dtype(R, theta)
     R, theta = R.astype(dt), theta.astype(dt)
