@@ -113,6 +113,21 @@ def _abs_cos(cos_i):
     return jnp.where(cos_i < 0, -cos_i, cos_i)
 
 
+def materialize(x):
+    """`x`, computed once and stored, for every consumer to read (on XLA's CPU backend).
+
+    XLA duplicates cheap elementwise work into each fused loop that consumes it, and contracts
+    multiply-adds into FMAs independently in each copy, so a value near a decision threshold (k_t^2
+    near the critical angle) can be computed twice and land on both sides of it: a mask returned
+    as "transmitted" while the direction beside it was selected as "reflected". An optimization
+    barrier does not prevent this (the CPU pipeline removes barriers before fusion: checked on the
+    compiled HLO). A division with several consumers is materialized instead, so `x` is divided by
+    a 1 the compiler cannot fold (2 only where `x` is NaN, which stays NaN): the same bits, one
+    division per element.
+    """
+    return x / jnp.where(jnp.isnan(x), 2, 1).astype(x.dtype)
+
+
 def sqrt_where(x, mask):
     """`sqrt(x)` where `mask`, else 0, with finite gradients everywhere (the double-where rule).
 
@@ -374,11 +389,17 @@ def _rt_two_loops(cos_i, eta1, eta2):
 
     XLA on the CPU has no multi-output loop fusion: the quotients that both R and T need are
     otherwise each written to memory and read back (measured: `fresnel_rt` 12 ns/element against
-    1.5 for `fresnel`, 11 fused loops). Here k_t^2 is computed once and materialized (so both loops
-    make the same TIR decision), and the transmittance loop recomputes the rest from inputs passed
-    through an optimization barrier, which XLA cannot identify with the reflectance loop's (so no
-    common subexpression ties them together again). R and T then each carry their own roundings,
-    and R + T - 1 is within a few ulps of 0 instead of exactly so.
+    1.5 for `fresnel`, 11 fused loops). Here the transmittance loop recomputes everything from
+    inputs passed through an optimization barrier, which XLA cannot identify with the reflectance
+    loop's (so no common subexpression ties them together again). R and T then each carry their own
+    roundings, and R + T - 1 is within a few ulps of 0 instead of exactly so.
+
+    Both loops compute k_t^2 from the same expression, and the TIR decision and the m consistent
+    with it (see `_kt_squared`) come from that in each. Materializing k_t^2 once instead (see
+    `materialize`) made it worse: each loop's m, contracted its own way, then disagreed with the
+    shared k_t^2, and the amplification near the critical angle broke R + T = 1 by 5e-3 in the
+    stress test (float32). (The barriers do not materialize anything: XLA's CPU pipeline removes
+    them before fusion; what they do is keep the two loops' copies apart.)
     """
     q = jax.lax.optimization_barrier(_q_real(cos_i, eta1, eta2))
     R_s, R_p, _, _ = _sp_rt_real(cos_i, eta1, eta2, q)

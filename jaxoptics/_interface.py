@@ -15,8 +15,8 @@ import jax
 import jax.numpy as jnp
 
 from . import _validate as V
-from ._fresnel import _kt_squared, _own_loop, _positive_finite, _powers, _schlick_from_r0, _terms, _valid_index
-from ._refract import METHODS, _cross, _dot, _refracted, _rsqrt_positive, _valid_vectors, _vectors
+from ._fresnel import _kt_squared, _own_loop, _positive_finite, _powers, _schlick_from_r0, _terms, _valid_index, materialize
+from ._refract import METHODS, _cross, _dot, _refracted, _rsqrt_positive, _signed_cos, _valid_vectors, _vectors
 
 OUTPUTS = ("r", "t", "tir", "R", "T", "R_s", "R_p")
 FRESNEL_MODELS = ("exact", "schlick", "schlick_tir")
@@ -35,7 +35,8 @@ class InterfaceSpec(NamedTuple):
     - `tir_possible`: `False` promises `eta1 <= eta2` everywhere (every ray enters a denser
       medium): the TIR selects are left out.
     - `check_inputs`: `False` leaves out the NaN-for-invalid-input masks (the caller guarantees
-      unit-length non-zero vectors, finite inputs and positive indices).
+      unit-length non-zero vectors, finite inputs and positive indices), and the cosine of
+      incidence is the plain dot product (not the double-word one of `refract`).
     """
 
     outputs: tuple = ("r", "t", "tir", "R", "T")
@@ -103,9 +104,11 @@ def interface(i, n, eta1, eta2, *, spec: InterfaceSpec = DEFAULT_SPEC) -> Intera
     if spec.check_inputs:
         valid = _valid_vectors(i, n) & _positive_finite(e1)
         valid &= _valid_index(e2) if spec.complex_index else _positive_finite(e2)
+        d = _signed_cos(i, n)  # to about half an ulp, as in `refract`
         i = i * _rsqrt_positive(_dot(i, i))[..., None]
         n = n * _rsqrt_positive(_dot(n, n))[..., None]
-    d = _dot(i, n)
+    else:
+        d = materialize(_dot(i, n))  # once, so that every loop sees the same cosine
     flip = d > 0
     nf = jnp.where(flip[..., None], -n, n)
     c = jnp.where(flip, d, -d)
@@ -119,18 +122,20 @@ def interface(i, n, eta1, eta2, *, spec: InterfaceSpec = DEFAULT_SPEC) -> Intera
     cr = s2 = None
     if ("t" in want or "tir" in want) and spec.method == "degreve" and spec.tir_possible:
         cr = _cross(i, n)
-        s2 = _dot(cr, cr)
-    # R and T both wanted (exact, real index): compute k_t^2 once, materialized, and T in a loop of
-    # its own on inputs behind an optimization barrier. XLA on the CPU has no multi-output loop
-    # fusion, and R and T sharing every quotient made about ten loops (see `fresnel_rt`).
+        s2 = materialize(_dot(cr, cr))
+    # R and T both wanted (exact, real index): T in a loop of its own on inputs behind an
+    # optimization barrier (which keeps XLA from identifying them with R's). XLA on the CPU has no
+    # multi-output loop fusion, and R and T sharing every quotient made about ten loops (see
+    # `fresnel_rt`).
     split_rt = (spec.fresnel == "exact" and not spec.complex_index and "T" in want
                 and bool(want & {"R", "R_s", "R_p"}))
     q = None
-    if split_rt:
-        # c and sin^2 are materialized first and every loop reads those copies (left to itself
-        # XLA recomputes them in each loop, contracting multiply-adds differently).
-        c, s2 = jax.lax.optimization_barrier((c, s2))
-        q = jax.lax.optimization_barrier(_kt_squared(e1 * c, e1, e2, s2)[0])
+    if need_terms and not spec.complex_index and (split_rt or (spec.tir_possible and want & {"t", "tir"})):
+        # k_t^2 computed once and stored, when several outputs must agree on its sign: the mask,
+        # the direction selected on it, R and T (left to itself XLA recomputes it in each loop,
+        # contracting multiply-adds differently, and near the critical angle the copies can
+        # disagree). Its inputs c and sin^2 are materialized above for the same reason.
+        q = materialize(_kt_squared(e1 * c, e1, e2, s2)[0])
     tm = _terms(c, e1, e2, s2, q_given=q) if need_terms else None
     tir = tm.tir if (tm is not None and spec.tir_possible) else None
 

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _validate as V
-from ._fresnel import _kt_squared, _positive_finite, sqrt_where
+from ._fresnel import _kt_squared, _positive_finite, materialize, sqrt_where
 
 METHODS = ("degreve", "heckbert", "bec", "oliveira")
 
@@ -60,6 +60,92 @@ def _vectors(i, n, *etas):
         named[k] = jnp.shape(e) + (3,)  # indices broadcast against the leading (batch) axes
     shape = V.broadcast_shapes(**named)
     return jnp.broadcast_to(i, shape), jnp.broadcast_to(n, shape), shape[:-1]
+
+
+# ---- the cosine of incidence in double-word arithmetic ----------------------------------------
+# Near the critical angle the TIR decision and t hinge on cos_i to the last ulp, and the backward
+# bound there is tight: moving a component of i along i hardly changes the angle, so 2-ulp moves of
+# the inputs move cos_i by only about 1 ulp. A dot product of normalized vectors carries about 4
+# roundings (2 ulps). So cos_i = (i . n) / sqrt((i . i)(n . n)) is evaluated with each quantity as
+# an unevaluated sum hi + lo (Dekker, Ogita-Rump-Oishi "Dot2") and rounded once at the end.
+#
+# The error-free product splits each factor by masking its low significand bits, not by
+# Veltkamp's (2^s + 1) x trick: XLA's CPU compiler contracts a*b + c into an FMA where it sees fit,
+# which breaks Veltkamp's split, while every product of masked halves below is exact, so it gives
+# the same bits with or without contraction. (float32: 12 + 12 significand bits, products exact;
+# float64: 26 + 27 bits, only the last, u^2-sized, partial product is rounded.)
+
+_MASKS = {4: (jnp.uint32, 0xFFFFF000), 8: (jnp.uint64, 0xFFFFFFFFF8000000)}
+
+
+def _split(x):
+    ut, mask = _MASKS[x.dtype.itemsize]
+    hi = jax.lax.bitcast_convert_type(jax.lax.bitcast_convert_type(x, ut) & ut(mask), x.dtype)
+    return hi, x - hi
+
+
+def _two_prod(a, b):
+    """p + e == a * b (exactly in float32), with p = fl(a * b)."""
+    p = a * b
+    ah, al = _split(a)
+    bh, bl = _split(b)
+    return p, ((ah * bh - p) + ah * bl + al * bh) + al * bl
+
+
+def _two_sum(a, b):
+    """s + e == a + b exactly, s = fl(a + b) (Knuth; no multiplications, so contraction-proof)."""
+    s = a + b
+    bb = s - a
+    return s, (a - (s - bb)) + (b - bb)
+
+
+def _dot2(a, b):
+    """a . b over the last axis (length 3) as hi + lo, accurate as if computed in twice the
+    working precision (Ogita, Rump and Oishi 2005, Algorithm Dot2)."""
+    p0, e0 = _two_prod(a[..., 0], b[..., 0])
+    p1, e1 = _two_prod(a[..., 1], b[..., 1])
+    p2, e2 = _two_prod(a[..., 2], b[..., 2])
+    s, t1 = _two_sum(p0, p1)
+    s, t2 = _two_sum(s, p2)
+    return s, (e0 + e1 + e2) + (t1 + t2)
+
+
+def _signed_cos_plain(i, n):
+    i = i * _rsqrt_positive(_dot(i, i))[..., None]
+    n = n * _rsqrt_positive(_dot(n, n))[..., None]
+    return _dot(i, n)
+
+
+@jax.custom_jvp
+def _signed_cos(i, n):
+    """(i . n) / (|i| |n|), within about half an ulp (one final rounding): the value from
+    double-word arithmetic, the derivative from the plain formula (the same function; the
+    derivative is not ill-conditioned). NaN-free derivative for zero vectors (as `refract`)."""
+    dh, dl = _dot2(i, n)
+    ih, il = _dot2(i, i)
+    nh, nl = _dot2(n, n)
+    # g = (i . i)(n . n) as gh + gl
+    gh, ge = _two_prod(ih, nh)
+    gl = ge + (ih * nl + il * nh)
+    # 1/sqrt(g) as r0 (1 + h/2): r0 the working-precision rsqrt, h = 1 - g r0^2 its residual,
+    # which is a few ulps, so one Newton step in this form leaves an O(u^2) error.
+    r0 = _rsqrt_positive(gh)
+    yh, yl = _two_prod(r0, r0)
+    zh, zl = _two_prod(gh, yh)
+    zl = zl + (gh * yl + gl * yh)
+    h = (1 - zh) - zl  # 1 - zh is exact (Sterbenz: zh is within a few ulps of 1)
+    rl = r0 * (0.5 * h)
+    ph, pl = _two_prod(dh, r0)
+    # Materialized: otherwise XLA recomputes these ~200 operations in each of refract's loops
+    # that read the cosine (measured: 14 loops and 2.3x the time of the plain-cosine kernel; once:
+    # 8 loops and about 10% over it).
+    return materialize(ph + (pl + (dh * rl + dl * r0)))
+
+
+@_signed_cos.defjvp
+def _signed_cos_jvp(primals, tangents):
+    _, dc = jax.jvp(_signed_cos_plain, primals, tangents)
+    return _signed_cos(*primals), dc
 
 
 def _cross(a, b):
@@ -162,9 +248,9 @@ def refract(i, n, eta1, eta2, *, method: str = "degreve", oliveira_c: float = 1.
     # (eta1/eta2)^2 in cos_t^2, so directions a few ulps off unit length would otherwise give a
     # visibly non-unit t. (rsqrt of exactly 1 is 1: unit inputs pass through unchanged.) The
     # double where keeps the gradient finite for zero vectors, which give NaN below anyway.
+    d = _signed_cos(i, n)[..., None]  # to about half an ulp (see `_signed_cos`)
     i = i * _rsqrt_positive(_dot(i, i))[..., None]
     n = n * _rsqrt_positive(_dot(n, n))[..., None]
-    d = _dot(i, n)[..., None]
     # Face the normal toward the incident side: cos_i = -(i . n_f) = |i . n| >= 0, at most 1
     # (rounding can leave it an ulp above, which at a large index contrast would make cos_t > 1;
     # a where, not jnp.minimum, so that the derivative at exactly normal incidence is kept).
@@ -181,10 +267,11 @@ def refract(i, n, eta1, eta2, *, method: str = "degreve", oliveira_c: float = 1.
     cr = _cross(i, n)
     s2 = _dot(cr, cr)[..., None]
     q, diff, _ = _kt_squared(ki, eta1, eta2, sin_sq=s2)  # (eta2 cos_t)^2; < 0 under TIR
-    # One materialized q: without the barrier XLA may recompute q in several fusions, contracting
-    # multiply-adds into FMAs differently in each, and the returned mask could then disagree with
-    # the select below for q within rounding of 0 (a reflected t reported as transmitted).
-    q = jax.lax.optimization_barrier(q)
+    # One materialized q: otherwise XLA recomputes q in several fused loops, contracting
+    # multiply-adds into FMAs differently in each, and the returned mask could disagree with the
+    # select below for q within rounding of 0 (a reflected t reported as transmitted: seen in the
+    # stress test as a Snell residual of 0.25).
+    q = materialize(q)
     tir = q < 0
 
     kt = sqrt_where(q, q > 0)  # double where (see sqrt_where): k_t = 0 under TIR

@@ -4,6 +4,7 @@ Every component of i and n and both indices are perturbed by 2 ulps for the boun
 when max_k |t_k - t_ref_k| <= bound + 4 eps (the directions have unit length).
 """
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -130,3 +131,71 @@ def test_heckbert_and_oliveira_documented_accuracy():
            for m in ("degreve", "heckbert")}
     assert err["degreve"] < 1e-15
     assert err["heckbert"] > 100 * err["degreve"] + 1e-14
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_cosine_of_incidence_within_half_an_ulp(dtype):
+    """`refract`'s cosine (double-word arithmetic, one final rounding) against 50-digit mpmath:
+    within half an ulp plus an O(u^2) term (which shows only where i . n cancels, at grazing
+    incidence), for unit, unnormalized and scaled vectors."""
+    from mpmath import mp
+
+    from jaxoptics._refract import _signed_cos
+
+    rng = np.random.default_rng(7)
+    N = 600
+    n = rng.normal(size=(N, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    i = rng.normal(size=(N, 3))
+    k = N // 3
+    i[:k] = np.cross(n[:k], i[:k]) + rng.choice([1e-3, 1e-6, 1e-9, 0.5], size=(k, 1)) * n[:k]  # grazing
+    i[k:2 * k] = n[k:2 * k] + 1e-4 * rng.normal(size=(k, 3))  # near normal incidence
+    i[2 * k:] *= np.exp(rng.uniform(-20, 20, size=(N - 2 * k, 1)))  # any length
+    i, n = i.astype(dtype), n.astype(dtype)
+    got = np.asarray(_signed_cos(jnp.asarray(i), jnp.asarray(n)), np.float64)
+    u = float(np.finfo(dtype).eps) / 2
+    with mp.workdps(50):
+        for a, b, g in zip(i.tolist(), n.tolist(), got):
+            a, b = [mp.mpf(x) for x in a], [mp.mpf(x) for x in b]
+            ref = mp.fdot(a, b) / mp.sqrt(mp.fdot(a, a) * mp.fdot(b, b))
+            err = abs(mp.mpf(g) - ref)
+            assert err <= 0.5 * spacing(float(ref), dtype) + 4 * u * u, (a, b, g, float(ref))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_refract_within_ulps_of_the_critical_angle(dtype):
+    """Within 0 to 2 ulps of the critical cosine, for index ratios between 1/2 and 1 (where the
+    cosine, not the sine, sets the TIR decision): the mask may differ from the exact one only where
+    moving an input by 2 ulps could flip it, and t is within the 2-ulp backward bound. (float32
+    missed this before the double-word cosine: a plain dot product of normalized vectors carries
+    about 2 ulps, the bound allows about 1.)"""
+    rng = np.random.default_rng(11)
+    cases = []
+    for _ in range(60):
+        e1 = float(dtype(np.exp(rng.uniform(np.log(0.5), np.log(3.0)))))
+        e2 = float(dtype(e1 * rng.uniform(0.5, 1.0)))
+        cc = dtype(np.sqrt((e1 - e2) * (e1 + e2)) / e1)
+        for kk in (0, 1, -1, 2, -2):
+            c = float(np.nextafter(cc, dtype(np.inf if kk > 0 else 0)) if kk else cc)
+            for _ in range(abs(kk) - 1):
+                c = float(np.nextafter(dtype(c), dtype(np.inf if kk > 0 else 0)))
+            n, a = _frame(rng, dtype)
+            ii = np.sqrt(max(1 - c * c, 0)) * a - c * n
+            cases.append((ii.astype(dtype), (rng.choice([-1.0, 1.0]) * n).astype(dtype), e1, e2))
+    i = jnp.asarray(np.stack([c[0] for c in cases]))
+    n = jnp.asarray(np.stack([c[1] for c in cases]))
+    e1 = jnp.asarray(np.array([c[2] for c in cases], dtype))
+    e2 = jnp.asarray(np.array([c[3] for c in cases], dtype))
+    t, tir = jax.jit(jo.refract)(i, n, e1, e2)
+    eps = float(np.finfo(dtype).eps)
+    failures = []
+    for k, (ii, nn, a, b) in enumerate(cases):
+        args = tuple(float(v) for v in ii) + tuple(float(v) for v in nn) + (a, b)
+        if bool(tir[k]) not in _tir_in_box(args, dtype):
+            failures.append(("tir", args, bool(tir[k])))
+            continue
+        ref, bound = backward_bound(_refract_mp, args, dtype, nonneg=(6, 7))
+        err = max(abs(mpf(float(t[k, j])) - ref[j]) for j in range(3))
+        if not err <= bound + 4 * eps:
+            failures.append(("t", args, float(err), float(bound)))
+    assert not failures, (len(failures), failures[:3])
