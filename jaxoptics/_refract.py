@@ -14,8 +14,11 @@ Mitsuba 3 and pbrt-v4 use `wi` pointing *away* from the surface and a single rel
 `refract` normalizes `i` and `n` (only their directions matter; unit inputs pass through
 unchanged): at a large index contrast an ulp of error in their length would otherwise be amplified
 into a visibly non-unit `t`. `reflect` does not (it is linear in `i` and has no such amplification):
-pass it a unit normal. An element whose `i` or `n` is zero or not finite, or whose index is not
-finite and positive, gives NaN in every output (and `tir = False`); nothing raises inside `jit`.
+pass it a unit normal. `refract` and `interface` take `cos_i = (i . n) / (|i| |n|)` from
+double-word arithmetic, rounded once (within half an ulp): near the critical angle the TIR decision
+hinges on its last ulp, and a plain dot product of normalized vectors carries about two. An
+element whose `i` or `n` is zero or not finite, or whose index is not finite and positive, gives
+NaN in every output (and `tir = False`); nothing raises inside `jit`.
 """
 
 from __future__ import annotations
