@@ -10,6 +10,7 @@ import optimistix as optx
 
 from . import _validate as V
 from ._fit import POLARIZATIONS, _is_concrete, _reflectance, _tol, _warn_if_x64_off, check_curves, fit_eta
+from ._fresnel import materialize
 from ._materials import cauchy, sellmeier
 
 MODELS = ("cauchy", "sellmeier")
@@ -71,7 +72,7 @@ def _initial(model, terms, lam, n):
 
 @eqx.filter_jit
 def _solve(theta, lam, R, w, eta1, p0, *, model, terms, polarization, solver, max_steps, sigma_given):
-    cos_i = jnp.cos(theta)
+    cos_i = materialize(jnp.cos(theta))  # once, not in every loop over the residuals (see `_fit_batch`)
 
     def residual(p, _):
         n = _index(model, p, lam, terms)
