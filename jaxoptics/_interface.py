@@ -16,7 +16,7 @@ import jax.numpy as jnp
 
 from . import _validate as V
 from ._fresnel import _kt_squared, _own_loop, _positive_finite, _powers, _schlick_from_r0, _terms, _valid_index, materialize
-from ._refract import METHODS, _cross, _dot, _refracted, _rsqrt_positive, _signed_cos, _valid_vectors, _vectors
+from ._refract import METHODS, _cross, _dot, _normalize, _refracted, _signed_cos, _valid_vectors, _vectors
 
 OUTPUTS = ("r", "t", "tir", "R", "T", "R_s", "R_p")
 FRESNEL_MODELS = ("exact", "schlick", "schlick_tir")
@@ -105,8 +105,7 @@ def interface(i, n, eta1, eta2, *, spec: InterfaceSpec = DEFAULT_SPEC) -> Intera
         valid = _valid_vectors(i, n) & _positive_finite(e1)
         valid &= _valid_index(e2) if spec.complex_index else _positive_finite(e2)
         d = _signed_cos(i, n)  # to about half an ulp, as in `refract`
-        i = i * _rsqrt_positive(_dot(i, i))[..., None]
-        n = n * _rsqrt_positive(_dot(n, n))[..., None]
+        i, n = _normalize(i), _normalize(n)
     else:
         d = materialize(_dot(i, n))  # once, so that every loop sees the same cosine
     flip = d > 0

@@ -114,9 +114,7 @@ def _dot2(a, b):
 
 
 def _signed_cos_plain(i, n):
-    i = i * _rsqrt_positive(_dot(i, i))[..., None]
-    n = n * _rsqrt_positive(_dot(n, n))[..., None]
-    return _dot(i, n)
+    return _dot(_normalize(i), _normalize(n))
 
 
 @jax.custom_jvp
@@ -161,6 +159,11 @@ def _cross(a, b):
 def _rsqrt_positive(x):
     ok = x > 0
     return jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, x, 1)), 1)
+
+
+def _normalize(v):
+    """v / |v| over the last axis; zero vectors stay zero, with a finite derivative (double where)."""
+    return v * _rsqrt_positive(_dot(v, v))[..., None]
 
 
 def _valid_vectors(i, n):
@@ -252,8 +255,7 @@ def refract(i, n, eta1, eta2, *, method: str = "degreve", oliveira_c: float = 1.
     # visibly non-unit t. (rsqrt of exactly 1 is 1: unit inputs pass through unchanged.) The
     # double where keeps the gradient finite for zero vectors, which give NaN below anyway.
     d = _signed_cos(i, n)[..., None]  # to about half an ulp (see `_signed_cos`)
-    i = i * _rsqrt_positive(_dot(i, i))[..., None]
-    n = n * _rsqrt_positive(_dot(n, n))[..., None]
+    i, n = _normalize(i), _normalize(n)
     # Face the normal toward the incident side: cos_i = -(i . n_f) = |i . n| >= 0, at most 1
     # (rounding can leave it an ulp above, which at a large index contrast would make cos_t > 1;
     # a where, not jnp.minimum, so that the derivative at exactly normal incidence is kept).
