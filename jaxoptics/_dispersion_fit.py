@@ -9,7 +9,7 @@ import numpy as np
 import optimistix as optx
 
 from . import _validate as V
-from ._fit import POLARIZATIONS, _is_concrete, _reflectance, _tol, _warn_if_x64_off, check_curves, fit_eta
+from ._fit import POLARIZATIONS, _is_concrete, _model, _tol, _warn_if_x64_off, check_curves, fit_eta
 from ._fresnel import materialize
 from ._materials import cauchy, sellmeier
 
@@ -76,7 +76,7 @@ def _solve(theta, lam, R, w, eta1, p0, *, model, terms, polarization, solver, ma
 
     def residual(p, _):
         n = _index(model, p, lam, terms)
-        return ((_reflectance(cos_i[None, :], eta1, n[:, None], polarization) - R) * w).ravel()
+        return ((_model(cos_i[None, :], eta1, n[:, None], polarization) - R) * w).ravel()
 
     sol = optx.least_squares(residual, solver, p0, max_steps=max_steps, throw=False)
     p = sol.value

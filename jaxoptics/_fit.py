@@ -7,6 +7,7 @@ never an exception from inside the solver.
 
 from __future__ import annotations
 
+import functools
 import warnings
 
 import equinox as eqx
@@ -15,10 +16,11 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
+from jax.custom_derivatives import SymbolicZero
 from jax.flatten_util import ravel_pytree
 
 from . import _validate as V
-from ._fresnel import fresnel, fresnel_sp, materialize
+from ._fresnel import _own_loop, fresnel, fresnel_sp, materialize
 
 POLARIZATIONS = ("unpolarized", "s", "p")
 
@@ -28,6 +30,64 @@ def _reflectance(cos_i, eta1, eta2, polarization):
         return fresnel(cos_i, eta1, eta2)
     R_s, R_p = fresnel_sp(cos_i, eta1, eta2)
     return R_s if polarization == "s" else R_p
+
+
+def _reflectance_d_eta2(cos_i, eta1, eta2, polarization):
+    r"""`d R / d eta2` for a real `eta2`, written so that XLA compiles it to one fused loop.
+
+    With k_i = eta1 |c|, k_t = sqrt(q), q = eta2^2 - eta1^2 + k_i^2, D_s = k_i + k_t and
+    D_p = eta2^2 k_i + eta1^2 k_t (the same closed form as `fresnel`'s derivative rule):
+
+    $$\frac{dR_s}{d\eta_2} = \frac{-4 k_i \eta_2 (k_i - k_t)}{k_t D_s^3}, \qquad
+    \frac{dR_p}{d\eta_2} = \frac{4 \eta_1^2 \eta_2 k_i (2 q - \eta_2^2)(\eta_2^2 k_i - \eta_1^2 k_t)}{k_t D_p^3}$$
+
+    and 0 under TIR and at the critical angle (q <= 0), as in `fresnel`. Only what a fit needs:
+    no guards for invalid input (the fit's index is |y| and its data are checked), one select at
+    the end. The kernel's own rule shares its quotients with the reflectance and selects on
+    several masks; XLA on the CPU (no multi-output fusion) then wrote five arrays over all
+    (curves x angles) per solver step for this one column.
+    """
+    ki = eta1 * jnp.abs(cos_i)
+    e1sq, e2sq = eta1 * eta1, eta2 * eta2
+    q = (eta2 - eta1) * (eta2 + eta1) + ki * ki
+    kt = jnp.sqrt(jnp.maximum(q, jnp.finfo(q.dtype).tiny))
+    if polarization != "p":
+        ds = ki + kt
+        d_s = -4 * ki * eta2 * (ki - kt) / (kt * ds * ds * ds)
+    if polarization != "s":
+        dp = e2sq * ki + e1sq * kt
+        d_p = 4 * e1sq * eta2 * ki * (2 * q - e2sq) * (e2sq * ki - e1sq * kt) / (kt * dp * dp * dp)
+    d = {"s": lambda: d_s, "p": lambda: d_p, "unpolarized": lambda: 0.5 * (d_s + d_p)}[polarization]()
+    return jnp.where(q > 0, d, 0)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
+def _model(cos_i, eta1, eta2, polarization):
+    """`_reflectance` for a real `eta2`, whose derivative in `eta2` compiles to a loop of its own.
+
+    The solver linearizes the model at every step and needs the residuals and the Jacobian column
+    `dR/deta2` over all (curves x angles). Derived together, they share the kernel's quotients,
+    which XLA on the CPU writes to memory and reads back. Here the column comes from
+    `_reflectance_d_eta2`, on inputs passed through an optimization barrier (`_own_loop`) so that
+    no common subexpression ties it to the model's loop again.
+    """
+    return _reflectance(cos_i, eta1, eta2, polarization)
+
+
+@functools.partial(_model.defjvp, symbolic_zeros=True)
+def _model_jvp(polarization, primals, tangents):
+    cos_i, eta1, eta2 = primals
+    out = _model(cos_i, eta1, eta2, polarization)
+    dc, de1, de2 = tangents
+    d_out = jnp.zeros_like(out)
+    if type(de2) is not SymbolicZero:
+        d_out = d_out + _reflectance_d_eta2(*_own_loop(cos_i, eta1, eta2), polarization) * de2
+    if type(dc) is not SymbolicZero or type(de1) is not SymbolicZero:  # not used by the fits
+        inst = lambda d, x: jnp.zeros_like(x) if type(d) is SymbolicZero else d
+        _, d_rest = jax.jvp(lambda c, a: _reflectance(c, a, eta2, polarization), (cos_i, eta1),
+                            (inst(dc, cos_i), inst(de1, eta1)))
+        d_out = d_out + d_rest
+    return out, d_out
 
 
 def synthetic_reflectance(key, eta2, theta, *, eta1=1.0, polarization="unpolarized", noise=0.0):
@@ -218,7 +278,7 @@ def _heuristics(theta, R, eta1, absorbing):
     return h[:, None]
 
 
-def _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization, unit_weights=False):
+def _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization):
     """Best starting point per curve (vmapped over curves): the shared grid is scored for all
     curves at once with matrix products (sum w^2 (Rg - R)^2 expanded), the few per-curve
     candidates (heuristics, the refined grid point) on at most 16 of the angles, evenly spread:
@@ -228,19 +288,20 @@ def _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization, unit_wei
     grid = _grid(eta1, absorbing, R.dtype)
     eta_g = jax.lax.complex(grid[:, 0], grid[:, 1]) if absorbing else grid[:, 0]
     Rg = _reflectance(cos_i[None, :], eta1, eta_g[:, None], polarization)  # (K, m), shared
-    w2 = w * w
+    w2 = None if w is None else w * w
 
     def grid_sse(cols):
-        Rg_, w2_, R_ = Rg[:, cols], w2[:, cols], R[:, cols]
-        if unit_weights:  # one matrix product instead of two
+        Rg_, R_ = Rg[:, cols], R[:, cols]
+        if w is None:  # unit weights: one matrix product instead of two
             sse = jnp.sum(Rg_ * Rg_, -1)[None, :] - 2 * (R_ @ Rg_.T) + jnp.sum(R_ * R_, -1, keepdims=True)
         else:
+            w2_ = w2[:, cols]
             sse = (w2_ @ (Rg_ * Rg_).T) - 2 * ((w2_ * R_) @ Rg_.T) + jnp.sum(w2_ * R_ * R_, -1, keepdims=True)
         return jnp.where(jnp.isfinite(sse), sse, jnp.inf)
 
     m = theta.shape[0]
     sub = np.unique(np.linspace(0, m - 1, min(m, 16)).round().astype(int))
-    score = lambda y, R1, w1: jnp.sum(residual(y, R1[sub], w1[sub], sub) ** 2)
+    score = lambda y, R1, w1: jnp.sum(residual(y, R1[sub], None if w1 is None else w1[sub], sub) ** 2)
     heur = jax.vmap(lambda R1: _heuristics(theta, R1, eta1, absorbing))(R)  # (B, 4, p)
     sse_heur = jax.vmap(lambda hs, w1, R1: jax.vmap(lambda y: score(y, R1, w1))(hs))(heur, w, R)
     sse_grid = grid_sse(sub)
@@ -275,6 +336,10 @@ def _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization, unit_wei
         cands = jnp.concatenate([jnp.broadcast_to(grid, (R.shape[0],) + grid.shape), heur], axis=1)
         sse = jnp.concatenate([sse_grid, sse_heur], axis=1)
     return jnp.take_along_axis(cands, _first_argmin(sse)[:, None, None], axis=1)[:, 0]
+
+
+def _weigh(r, w):
+    return r if w is None else r * w
 
 
 def _params_to_eta(y, absorbing):
@@ -337,16 +402,17 @@ def _inverse_with_null_space(A):
 
 
 def _fit_one(cos_i, R, w, eta1, y0, *, polarization, absorbing, solver, max_steps, sigma_given):
+    model = _reflectance if absorbing else _model
 
     def residual(y, _):
-        return (_reflectance(cos_i, eta1, _params_to_eta(y, absorbing), polarization) - R) * w
+        return _weigh(model(cos_i, eta1, _params_to_eta(y, absorbing), polarization) - R, w)
 
     sol = optx.least_squares(residual, solver, y0, max_steps=max_steps, throw=False)
     y = jnp.abs(sol.value)  # the physical branch
 
     def res_phys(q):  # residuals as a function of the physical parameters (eta, or n and k)
         eta2 = jax.lax.complex(q[0], q[1]) if absorbing else q[0]
-        return (_reflectance(cos_i, eta1, eta2, polarization) - R) * w
+        return _weigh(model(cos_i, eta1, eta2, polarization) - R, w)
 
     # r and J from separate passes: a jvp returning both compiles to more loops, with the shared
     # terms materialized (measured: 74 against 57 ms for the whole fit of 10^4 curves)
@@ -377,17 +443,18 @@ def _fit_one(cos_i, R, w, eta1, y0, *, polarization, absorbing, solver, max_step
         eta, stderr = jax.lax.complex(y[0], y[1]), jax.lax.complex(se[0], se[1])
     else:
         eta, stderr = y[0], se[0]
-    rms = jnp.sqrt(jnp.mean((r / w) ** 2))
+    rms = jnp.sqrt(jnp.mean((r if w is None else r / w) ** 2))
     ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(y)) & ~jnp.any(jnp.isnan(se))
     return FitResult(eta, stderr, cov, ok, rms, chi2, sol.stats["num_steps"])
 
 
 @eqx.filter_jit
 def _fit_batch(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, max_steps, use_init, sigma_given):
-    # (B, 1) ones without sigma, broadcast to (B, m) here. XLA stores the broadcast and carries it
-    # through the solver's loop, but keeping w (B, 1) inside the vmapped solver measured slower
-    # (about 2x, side by side in one process: the loop's fusions split differently).
-    w = jnp.broadcast_to(w, R.shape)
+    # Without sigma the residuals are not weighted at all (w is None): no array of ones is
+    # broadcast, carried through the solver's loop and read in every step. (Keeping the ones
+    # (B, 1) inside the vmapped solver measured about 2x slower than broadcasting them to (B, m):
+    # the loop's fusions split differently.)
+    w = jnp.broadcast_to(w, R.shape) if sigma_given else None
     # The m cosines, computed once and stored: left to itself XLA fused jnp.cos into the loops
     # over all (B, m) residuals after the solve and took 10^6 cosines in each.
     cos_i = materialize(jnp.cos(theta))
@@ -396,9 +463,9 @@ def _fit_batch(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, ma
     else:
 
         def residual(y, R1, w1, cols):
-            return (_reflectance(cos_i[cols], eta1, _params_to_eta(y, absorbing), polarization) - R1) * w1
+            return _weigh(_reflectance(cos_i[cols], eta1, _params_to_eta(y, absorbing), polarization) - R1, w1)
 
-        y0 = _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization, unit_weights=not sigma_given)
+        y0 = _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization)
     one = lambda R1, w1, y1: _fit_one(cos_i, R1, w1, eta1, y1, polarization=polarization, absorbing=absorbing,
                                       solver=solver, max_steps=max_steps, sigma_given=sigma_given)
     return jax.vmap(one)(R, w, y0)
