@@ -88,6 +88,9 @@ def _fit(args) -> int:
         se_s = f"{se.real:.2g}, {se.imag:.2g}i" if args.absorbing else f"{se:.2g}"
         print(f"{lam:>13} {c.polarization:>11} {c.R.size:>6} {eta_s:>24} {se_s:>22} {('yes' if bool(r.converged) else 'NO'):>9} "
               f"{float(r.residual_rms):>10.3g} {float(r.chi2_reduced):>9.3g} {int(r.num_steps):>5}")
+        if not args.absorbing and np.isfinite(float(r.eta_alt)):
+            print(f"{'':>13} {'':>11} {'':>6} note: eta = {float(r.eta_alt):.7f} (the other side of eta1 = {args.eta1:g}) "
+                  "fits these data almost as well (Delta chi2 < 9); stderr includes it")
     if not args.absorbing:
         by_lam = {}
         for c, r in fits:

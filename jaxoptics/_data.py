@@ -52,13 +52,14 @@ class ReflectanceData(NamedTuple):
         pol = self.polarization if self.polarization is not None else np.full(self.R.shape, default_polarization)
         lam = self.wavelength_um if self.wavelength_um is not None else np.full(self.R.shape, np.nan)
         out = []
-        keys = sorted({(float(l), str(p)) for l, p in zip(lam, pol)}, key=lambda k: (np.nan_to_num(k[0]), k[1]))
+        # (no wavelength is None, not NaN: NaN != NaN, so a set would keep one key per row)
+        keys = sorted({(None if math.isnan(l) else float(l), str(p)) for l, p in zip(lam, pol)},
+                      key=lambda k: (-1.0 if k[0] is None else k[0], k[1]))
         for l, p in keys:
-            sel = (pol == p) & ((lam == l) | (np.isnan(lam) & np.isnan(l)))
+            sel = (pol == p) & (np.isnan(lam) if l is None else (lam == l))
             order = np.argsort(self.angle_deg[sel], kind="stable")
             out.append(Curve(np.deg2rad(self.angle_deg[sel][order]), self.R[sel][order],
-                             None if self.sigma is None else self.sigma[sel][order], p,
-                             None if math.isnan(l) else l, self.lines[sel][order]))
+                             None if self.sigma is None else self.sigma[sel][order], p, l, self.lines[sel][order]))
         return out
 
 
