@@ -492,8 +492,15 @@ def bench_limits(*, quick=False, progress=None, n=None):
     t_ = rng.uniform(0, np.pi / 2, N)
     iv = jnp.asarray(np.stack([np.sin(t_), np.zeros_like(t_), -np.cos(t_)], -1).astype(np.float32))
     nz = jnp.asarray([0.0, 0.0, 1.0], jnp.float32)
+    # and the floor under each: the same output arrays from trivial arithmetic (XLA on the CPU
+    # writes each output in a loop of its own, reading the inputs again)
     vector_kernels = (("refract (degreve)", lambda i: jo.refract(i, nz, e1, e2)),
-                      ("interface, full (r, t, tir, R, T)", lambda i: jo.interface(i, nz, e1, e2, spec=jo.InterfaceSpec())))
+                      ("interface, full (r, t, tir, R, T)", lambda i: jo.interface(i, nz, e1, e2, spec=jo.InterfaceSpec())),
+                      ("output floor of refract: (t, tir) from trivial arithmetic",
+                       lambda i: (i * 2 + nz[None, :], i[..., 0] > i[..., 2])),
+                      ("output floor of interface: (r, t, tir, R, T) from trivial arithmetic",
+                       lambda i: (i * 2 + nz[None, :], i - nz[None, :], i[..., 0] > i[..., 2], i[..., 0] * i[..., 2],
+                                  i[..., 1] * i[..., 2])))
     for name, f in vector_kernels:
         run_rows(name, f, False, iv)
     # The same with freed memory kept mapped (glibc mallopt, `jo.keep_freed_memory`): no page

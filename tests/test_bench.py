@@ -26,7 +26,9 @@ def test_bench_runs_and_reports_every_method(tmp_path):
     assert json.loads((tmp_path / "bench.json").read_text())["kernels"]
     limits = {r["method"] for r in report["limits"]}
     for m in ("copy (x * 2)", "copy (x * 2), input donated", "fresnel, exact (jaxoptics), input donated",
-              "R and T from one shared graph (two outputs sharing quotients)", "dot of 3-vectors, written out"):
+              "R and T from one shared graph (two outputs sharing quotients)", "dot of 3-vectors, written out",
+              "output floor of refract: (t, tir) from trivial arithmetic",
+              "output floor of interface: (r, t, tir, R, T) from trivial arithmetic"):
         assert m in limits, m
     import ctypes.util
 
