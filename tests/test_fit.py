@@ -123,6 +123,22 @@ def test_small_angle_range_branch_ambiguity_is_reported(degrees):
     np.testing.assert_allclose(alt[ambiguous] * np.asarray(r.eta)[ambiguous], 1.0, rtol=0.05)
 
 
+def test_large_batch_in_blocks_matches_single_fits():
+    """Batches larger than a block (about 2^17 points) are fitted block by block inside the one
+    compiled call, the last block padded: every curve still gets its own fit."""
+    from jaxoptics._fit import _BLOCK_POINTS
+
+    B = 2 * (_BLOCK_POINTS // THETA.size) + 7  # three blocks, the last one padded
+    etas = jnp.linspace(1.05, 3.5, B)
+    R = jo.synthetic_reflectance(jax.random.PRNGKey(4), etas, THETA, noise=1e-3)
+    r = jo.fit_eta(THETA, R)
+    assert r.eta.shape == (B,) and bool(jnp.all(r.converged))
+    for j in (0, B // 3, B // 2, B - 8, B - 1):
+        one = jo.fit_eta(THETA, R[j])
+        np.testing.assert_allclose(float(r.eta[j]), float(one.eta), rtol=1e-12)
+        np.testing.assert_allclose(float(r.stderr[j]), float(one.stderr), rtol=1e-9)
+
+
 def test_curves_gauss_newton_does_not_finish_are_refitted():
     """Curves Gauss-Newton does not converge on within max_steps are refitted with
     Levenberg-Marquardt in a second batched call (over a padded subset) and reported honestly."""
