@@ -66,6 +66,46 @@ def _np_fresnel_unpolarized(cos_i, eta1, eta2):
     return np.where(ct2 < 0, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
+_FIT_SNIPPET = """
+import json, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+from jaxoptics._bench import bench_fit
+class Progress:
+    def update(self, n=1):
+        print("@@progress", n, flush=True)
+print(json.dumps(bench_fit(quick=sys.argv[1] == "1", progress=Progress())))
+"""
+
+
+def bench_fit_in_subprocess(*, quick=False, progress=None):
+    """`bench_fit` in a fresh process: glibc's allocator in its default state, whatever ran before.
+
+    The state of glibc's malloc decides whether a call page-faults, and earlier measurements change
+    it for good: glibc turns its dynamic mmap threshold off once any mallopt parameter is set (so
+    after `keep_freed_memory(enable=False)` every block above 128 KiB is mmapped afresh: a
+    10^4-curve fit 48.6 against 20.2 ms, 13,642 faults per call against 0), and the fits'
+    long-lived small arrays fragment the arenas so that `keep_freed_memory` then no longer keeps a
+    40 MB output (a copy kernel 0.91 against 0.18 ns per element), each measured in a process of
+    its own. The full benchmark ran into both before the fits got a process of their own."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", _FIT_SNIPPET, "1" if quick else "0"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    last = None
+    for line in proc.stdout:
+        if line.startswith("@@progress"):
+            if progress:
+                progress.update(int(line.split()[1]))
+        elif line.strip():
+            last = line
+    err = proc.stderr.read()
+    if proc.wait() != 0 or last is None:
+        raise RuntimeError(f"the fit benchmark's process failed: {err.strip().splitlines()[-1] if err.strip() else '?'}")
+    return json.loads(last)
+
+
 def bench_fit(*, quick=False, progress=None):
     """Batched index fits against scipy.optimize.least_squares one curve at a time."""
     import jax
@@ -224,21 +264,13 @@ def run(*, quick=False, sections=("kernels", "fit", "devices"), out_dir="bench_o
                    kernels_table(rows, size), "", "### Throughput against batch size", "",
                    scaling_table(rows, sorted({r["n"] for r in rows if r.get("n")})), "",
                    f"Pareto chart: {out / 'pareto.png'}", ""]
-        # The fits before the limits: every measurement with freed memory kept runs after those
-        # with glibc's defaults. (glibc turns its dynamic mmap threshold off for good once any of
-        # its mallopt parameters is set, so after `keep_freed_memory(enable=False)` the process is
-        # not back in its default state: blocks above 128 KiB are then always mmapped, and a fit's
-        # temporaries page-fault in every call; measured, 0.044 against 0.020 s.)
-        fit_md = []
-        if "fit" in sections:
-            rows = bench_fit(quick=quick, progress=bar)
-            report["fit"] = rows
-            fit_md = ["### Index fits: 90 angles per curve, float64, noise 1e-3", "", fit_table(rows), ""]
-        if "kernels" in sections:
             lim = bench_limits(quick=quick, progress=bar, n=max(sizes) if sizes else None)
             report["limits"] = lim
             md += [f"### What bounds XLA on the CPU (float32, N = {lim[0]['n']:,})", "", limits_table(lim), ""]
-        md += fit_md
+        if "fit" in sections:
+            rows = bench_fit_in_subprocess(quick=quick, progress=bar)
+            report["fit"] = rows
+            md += ["### Index fits: 90 angles per curve, float64, noise 1e-3", "", fit_table(rows), ""]
         if "devices" in sections:
             rows = bench_devices(quick=quick, progress=bar)
             report["devices"] = rows
