@@ -324,6 +324,24 @@ def test_cli_fit_file_and_errors(capsys, tmp_path):
 
 
 
+def test_cli_reports_an_index_the_data_cannot_exclude(capsys, tmp_path):
+    """Measured at 0-15 degrees only, this curve (eta = 1.2) fits about as well with 0.834: the
+    CLI says so next to the fit, and the standard error covers both."""
+    theta = jnp.deg2rad(jnp.linspace(0, 15, 40))
+    R = np.asarray(jo.synthetic_reflectance(jax.random.PRNGKey(0), jnp.linspace(1.2, 4.0, 400), theta, noise=1e-3))[0]
+    rows = "\n".join(f"{np.rad2deg(t):.8f},{r:.10f}" for t, r in zip(np.asarray(theta), R))
+    p = _write(tmp_path, "angle_deg,R\n" + rows + "\n", "small_angles.csv")
+    assert main(["fit", str(p)]) == 0
+    out = capsys.readouterr().out
+    note = [l for l in out.splitlines() if "fits these data almost as well" in l]
+    assert len(note) == 1, out
+    alt = float(note[0].split("eta = ")[1].split()[0])
+    fit = jo.load_reflectance(p).curves()[0]
+    r = jo.fit_eta(fit.theta, fit.R)
+    assert abs(alt - float(r.eta_alt)) < 1e-6 and float(r.stderr) >= abs(float(r.eta) - alt)
+    assert abs(alt * float(r.eta) - 1) < 0.05  # eta and 1 / eta: the same normal-incidence reflectance
+
+
 def test_one_column_solver_matches_lineax_least_squares():
     """The closed-form one-column solver used by the default Gauss-Newton agrees with lineax's QR
     (least squares) and SVD (minimum norm, for the transposed 1 x m system), and returns the
