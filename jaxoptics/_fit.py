@@ -386,7 +386,9 @@ def _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization):
     cands = jnp.concatenate([jnp.broadcast_to(grid, (R.shape[0],) + grid.shape), heur], axis=1)
     sse = jnp.concatenate([sse_grid, sse_heur], axis=1)
     y0 = jnp.take_along_axis(cands, _first_argmin(sse)[:, None, None], axis=1)[:, 0]
-    return y0, y0
+    # The best grid point with k > 0, for curves whose fit ends at k = 0 (see `_absorbing_restart`)
+    k_pos = jnp.where(grid[:, 1] > 0, sse_grid, jnp.inf)
+    return y0, grid[_first_argmin(k_pos)]
 
 
 def _weigh(r, w):
@@ -546,8 +548,10 @@ def _fit_block(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, ma
     one = lambda R1, w1, y1: _fit_one(cos_i, R1, w1, eta1, y1, polarization=polarization, absorbing=absorbing,
                                       solver=solver, max_steps=max_steps, sigma_given=sigma_given)
     res = jax.vmap(one)(R, w, y0)
-    if use_init or absorbing:
+    if use_init:
         return res, y_init, jnp.full(R.shape[:1], jnp.inf, R.dtype)
+    if absorbing:  # k fitted as exactly 0: flagged with ratio 0 (see `_absorbing_restart`)
+        return res, alt, jnp.where(jnp.imag(res.eta) == 0, 0.0, jnp.inf).astype(R.dtype)
     # A start on the other branch (see `_second_branch`): the better of the grid's refined point
     # there and the mirror image eta1^2 / eta of the solution (the same normal-incidence
     # reflectance; the better start when the data cover small angles only), and its sum of squares
@@ -637,6 +641,32 @@ def _second_branch(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
     return jax.tree_util.tree_map(lambda a, b: a.at[idx].set(b[changed]), res, win)
 
 
+def _absorbing_restart(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
+    """Complex fits that end at k = 0 exactly, solved once more from the best grid point with
+    k > 0; the smaller chi-square wins.
+
+    R depends on k only through k^2, so k = 0 is a stationary point the solver cannot leave. The
+    physical estimates (normal-incidence inversion and the rest) are real, k = 0, and on a curve
+    of a moderately absorbing medium the inversion's n matches the normal-incidence reflectance
+    that n and k make together: it won the start, and the fit stayed at k = 0 with n far off
+    (measured on 3000 noisy curves, n 0.1 to 3, k 0.5 to 6: 2.2% with |z| of n beyond 3, up to
+    46, chi-square 20 to 150 times the noise; e.g. 3.36 + 0i for 2.97 + 1.01i). Curves whose data
+    are of a non-absorbing medium come back to k near 0 and keep their first fit.
+    """
+    again = np.flatnonzero(np.asarray(ratio) == 0)
+    if not again.size:
+        return res
+    pad = _bucket(again)
+    sub, _, _ = _fit_batch(theta, R[pad], w[pad], eta1, alt[pad], solver=solver, use_init=True, **kw)
+    sub = jax.tree_util.tree_map(lambda a: np.asarray(a[:again.size]), sub)
+    mine = jax.tree_util.tree_map(lambda a: np.asarray(a[again]), res)
+    better = sub.converged & (~mine.converged | (sub.chi2_reduced < mine.chi2_reduced))
+    if not better.any():
+        return res
+    idx = again[better]
+    return jax.tree_util.tree_map(lambda a, b: a.at[idx].set(b[better]), res, sub)
+
+
 def _solve(theta, R, w, eta1, y_init, solver, lm, use_init, kw, first=None):
     """The batched fit and, on concrete data, its follow-ups: the Levenberg-Marquardt refit of
     curves Gauss-Newton did not converge on, and the second branch of ambiguous curves. `first`:
@@ -647,8 +677,9 @@ def _solve(theta, R, w, eta1, y_init, solver, lm, use_init, kw, first=None):
         return res
     if lm is not None:
         res = _refit(res, theta, R, w, eta1, y_init, lm, use_init, kw)
-    if not use_init and not kw["absorbing"]:
-        res = _second_branch(res, alt, ratio, theta, R, w, eta1, solver, lm, kw)
+    if not use_init:
+        again = _absorbing_restart if kw["absorbing"] else _second_branch
+        res = again(res, alt, ratio, theta, R, w, eta1, solver, lm, kw)
     return res
 
 
