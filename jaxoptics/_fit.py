@@ -94,6 +94,57 @@ def _reflectance_plain(cos_i, eta1, eta2, polarization):
     return jnp.where(ki + kt == 0, jnp.where(eta1 == eta2, 0, 1), R)
 
 
+def _amplitudes_complex(cos_i, eta1, eta2):
+    """r_s, r_p (complex) for a complex `eta2 = n + ik`, `k >= 0`, and their derivatives in eta2
+    (holomorphic), as plain expressions: the complex fits' model (see `_reflectance_plain`)."""
+    shape = jnp.broadcast_shapes(jnp.shape(cos_i), jnp.shape(eta1), jnp.shape(eta2))
+    cos_i, eta1, eta2 = (jnp.broadcast_to(x, shape) for x in (cos_i, eta1, eta2))
+    e1 = eta1.astype(eta2.dtype)  # explicit casts: also under jax_numpy_dtype_promotion="strict"
+    ki = e1 * jnp.abs(cos_i).astype(eta2.dtype)
+    e1sq, e2sq = e1 * e1, eta2 * eta2
+    kt = jnp.sqrt((eta2 - e1) * (eta2 + e1) + ki * ki)  # principal root: Im >= 0 for k >= 0
+    ds, dp = ki + kt, e2sq * ki + e1sq * kt
+    return ki, kt, ds, dp, e1sq, e2sq
+
+
+def _reflectance_complex_plain(cos_i, eta1, eta2, polarization):
+    ki, kt, ds, dp, e1sq, e2sq = _amplitudes_complex(cos_i, eta1, eta2)
+    rs, rp = (ki - kt) / ds, (e2sq * ki - e1sq * kt) / dp
+    a2 = lambda z: jnp.real(z) ** 2 + jnp.imag(z) ** 2
+    R = {"s": lambda: a2(rs), "p": lambda: a2(rp), "unpolarized": lambda: 0.5 * (a2(rs) + a2(rp))}[polarization]()
+    return jnp.where(jnp.real(ds) == 0, jnp.where(eta1 == jnp.real(eta2), 0, 1), R)
+
+
+def _reflectance_complex_grad(cos_i, eta1, eta2, polarization):
+    """G with dR = Re(G d eta2): G = 2 conj(r) dr/deta2 for one polarization, the mean for both.
+    dr_s/deta2 = -2 k_i eta2 / (k_t D_s^2), dr_p/deta2 = 2 eta1^2 eta2 k_i (2 k_t^2 - eta2^2) / (k_t D_p^2)."""
+    ki, kt, ds, dp, e1sq, e2sq = _amplitudes_complex(cos_i, eta1, eta2)
+    gs = jnp.conj((ki - kt) / ds) * (-2 * ki * eta2 / (kt * ds * ds))
+    gp = jnp.conj((e2sq * ki - e1sq * kt) / dp) * (2 * e1sq * eta2 * ki * (2 * kt * kt - e2sq) / (kt * dp * dp))
+    G = {"s": lambda: 2 * gs, "p": lambda: 2 * gp, "unpolarized": lambda: gs + gp}[polarization]()
+    return jnp.where(jnp.abs(kt) > 0, G, 0)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
+def _model_complex(cos_i, eta1, eta2, polarization):
+    """The complex fits' model: `_reflectance_complex_plain`, with its derivative in eta2 in closed
+    form in a loop of its own (as `_model` for real indices)."""
+    return _reflectance_complex_plain(cos_i, eta1, eta2, polarization)
+
+
+@functools.partial(_model_complex.defjvp, symbolic_zeros=True)
+def _model_complex_jvp(polarization, primals, tangents):
+    cos_i, eta1, eta2 = primals
+    out = _model_complex(cos_i, eta1, eta2, polarization)
+    dc, de1, de2 = tangents
+    if type(dc) is not SymbolicZero or type(de1) is not SymbolicZero:
+        raise NotImplementedError("_model_complex is differentiated in eta2 only")
+    if type(de2) is SymbolicZero:
+        return out, jnp.zeros_like(out)
+    G = _reflectance_complex_grad(*_own_loop(cos_i, eta1, eta2), polarization)
+    return out, jnp.real(G) * jnp.real(de2) - jnp.imag(G) * jnp.imag(de2)
+
+
 @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
 def _model(cos_i, eta1, eta2, polarization):
     """The fits' model, `_reflectance_plain`, for a real `eta2`, whose derivative in `eta2`
@@ -455,7 +506,7 @@ def _inverse_with_null_space(A):
 
 
 def _fit_one(cos_i, R, w, eta1, y0, *, polarization, absorbing, solver, max_steps, sigma_given):
-    model = _reflectance if absorbing else _model
+    model = _model_complex if absorbing else _model
 
     def residual(y, _):
         return _weigh(model(cos_i, eta1, _params_to_eta(y, absorbing), polarization) - R, w)
@@ -541,7 +592,7 @@ def _fit_block(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, ma
     else:
 
         def residual(y, R1, w1, cols):
-            model = _reflectance if absorbing else _reflectance_plain
+            model = _reflectance_complex_plain if absorbing else _reflectance_plain
             return _weigh(model(cos_i[cols], eta1, _params_to_eta(y, absorbing), polarization) - R1, w1)
 
         y0, alt = _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization)
