@@ -95,8 +95,9 @@ def _reflectance_plain(cos_i, eta1, eta2, polarization):
 
 
 def _amplitudes_complex(cos_i, eta1, eta2):
-    """r_s, r_p (complex) for a complex `eta2 = n + ik`, `k >= 0`, and their derivatives in eta2
-    (holomorphic), as plain expressions: the complex fits' model (see `_reflectance_plain`)."""
+    """k_i, k_t, the denominators D_s and D_p, eta1^2 and eta2^2 for a complex `eta2 = n + ik`,
+    `k >= 0`: what the complex fits' model and its derivative are written in (plain expressions,
+    see `_reflectance_plain`)."""
     shape = jnp.broadcast_shapes(jnp.shape(cos_i), jnp.shape(eta1), jnp.shape(eta2))
     cos_i, eta1, eta2 = (jnp.broadcast_to(x, shape) for x in (cos_i, eta1, eta2))
     e1 = eta1.astype(eta2.dtype)  # explicit casts: also under jax_numpy_dtype_promotion="strict"
@@ -108,6 +109,8 @@ def _amplitudes_complex(cos_i, eta1, eta2):
 
 
 def _reflectance_complex_plain(cos_i, eta1, eta2, polarization):
+    """The reflectance for a complex `eta2`, as `_reflectance_plain` for a real one (absolute error
+    about 1e-14 against mpmath)."""
     ki, kt, ds, dp, e1sq, e2sq = _amplitudes_complex(cos_i, eta1, eta2)
     rs, rp = (ki - kt) / ds, (e2sq * ki - e1sq * kt) / dp
     a2 = lambda z: jnp.real(z) ** 2 + jnp.imag(z) ** 2
@@ -125,38 +128,26 @@ def _reflectance_complex_grad(cos_i, eta1, eta2, polarization):
     return jnp.where(jnp.abs(kt) > 0, G, 0)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
-def _model_complex(cos_i, eta1, eta2, polarization):
-    """The complex fits' model: `_reflectance_complex_plain`, with its derivative in eta2 in closed
-    form in a loop of its own (as `_model` for real indices)."""
-    return _reflectance_complex_plain(cos_i, eta1, eta2, polarization)
-
-
-@functools.partial(_model_complex.defjvp, symbolic_zeros=True)
-def _model_complex_jvp(polarization, primals, tangents):
-    cos_i, eta1, eta2 = primals
-    out = _model_complex(cos_i, eta1, eta2, polarization)
-    dc, de1, de2 = tangents
-    if type(dc) is not SymbolicZero or type(de1) is not SymbolicZero:
-        raise NotImplementedError("_model_complex is differentiated in eta2 only")
-    if type(de2) is SymbolicZero:
-        return out, jnp.zeros_like(out)
-    G = _reflectance_complex_grad(*_own_loop(cos_i, eta1, eta2), polarization)
-    return out, jnp.real(G) * jnp.real(de2) - jnp.imag(G) * jnp.imag(de2)
+def _reflectance_fit(cos_i, eta1, eta2, polarization):
+    """The fits' model: `_reflectance_plain` for a real `eta2`, `_reflectance_complex_plain` for a
+    complex one."""
+    plain = _reflectance_complex_plain if jnp.iscomplexobj(eta2) else _reflectance_plain
+    return plain(cos_i, eta1, eta2, polarization)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
 def _model(cos_i, eta1, eta2, polarization):
-    """The fits' model, `_reflectance_plain`, for a real `eta2`, whose derivative in `eta2`
-    compiles to a loop of its own.
+    """`_reflectance_fit`, whose derivative in `eta2` is in closed form and compiles to a loop of
+    its own.
 
-    The solver linearizes the model at every step and needs the residuals and the Jacobian column
-    `dR/deta2` over all (curves x angles). Derived together, they share quotients, which XLA on
-    the CPU writes to memory and reads back (the kernel's own derivative rule made five loops per
-    step). Here the column comes from `_reflectance_d_eta2`, on inputs passed through an
-    optimization barrier (`_own_loop`) so that no common subexpression ties it to the model's loop.
+    The solver linearizes the model at every step and needs the residuals and the Jacobian over all
+    (curves x angles). Derived together, they share quotients, which XLA on the CPU writes to
+    memory and reads back (the kernel's own derivative rule made five loops per step). Here the
+    derivative comes from `_reflectance_d_eta2` (real `eta2`) or `_reflectance_complex_grad`
+    (complex: `dR = Re(G d eta2)`), on inputs passed through an optimization barrier (`_own_loop`)
+    so that no common subexpression ties it to the model's loop.
     """
-    return _reflectance_plain(cos_i, eta1, eta2, polarization)
+    return _reflectance_fit(cos_i, eta1, eta2, polarization)
 
 
 @functools.partial(_model.defjvp, symbolic_zeros=True)
@@ -166,10 +157,15 @@ def _model_jvp(polarization, primals, tangents):
     dc, de1, de2 = tangents
     d_out = jnp.zeros_like(out)
     if type(de2) is not SymbolicZero:
-        d_out = d_out + _reflectance_d_eta2(*_own_loop(cos_i, eta1, eta2), polarization) * de2
+        copies = _own_loop(cos_i, eta1, eta2)
+        if jnp.iscomplexobj(eta2):
+            G = _reflectance_complex_grad(*copies, polarization)
+            d_out = d_out + jnp.real(G) * jnp.real(de2) - jnp.imag(G) * jnp.imag(de2)
+        else:
+            d_out = d_out + _reflectance_d_eta2(*copies, polarization) * de2
     if type(dc) is not SymbolicZero or type(de1) is not SymbolicZero:  # not used by the fits
         inst = lambda d, x: jnp.zeros_like(x) if type(d) is SymbolicZero else d
-        _, d_rest = jax.jvp(lambda c, a: _reflectance_plain(c, a, eta2, polarization), (cos_i, eta1),
+        _, d_rest = jax.jvp(lambda c, a: _reflectance_fit(c, a, eta2, polarization), (cos_i, eta1),
                             (inst(dc, cos_i), inst(de1, eta1)))
         d_out = d_out + d_rest
     return out, d_out
@@ -506,17 +502,16 @@ def _inverse_with_null_space(A):
 
 
 def _fit_one(cos_i, R, w, eta1, y0, *, polarization, absorbing, solver, max_steps, sigma_given):
-    model = _model_complex if absorbing else _model
 
     def residual(y, _):
-        return _weigh(model(cos_i, eta1, _params_to_eta(y, absorbing), polarization) - R, w)
+        return _weigh(_model(cos_i, eta1, _params_to_eta(y, absorbing), polarization) - R, w)
 
     sol = optx.least_squares(residual, solver, y0, max_steps=max_steps, throw=False)
     y = jnp.abs(sol.value)  # the physical branch
 
     def res_phys(q):  # residuals as a function of the physical parameters (eta, or n and k)
         eta2 = jax.lax.complex(q[0], q[1]) if absorbing else q[0]
-        return _weigh(model(cos_i, eta1, eta2, polarization) - R, w)
+        return _weigh(_model(cos_i, eta1, eta2, polarization) - R, w)
 
     # r and J from separate passes: a jvp returning both compiles to more loops, with the shared
     # terms materialized (measured: 74 against 57 ms for the whole fit of 10^4 curves)
@@ -592,8 +587,7 @@ def _fit_block(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, ma
     else:
 
         def residual(y, R1, w1, cols):
-            model = _reflectance_complex_plain if absorbing else _reflectance_plain
-            return _weigh(model(cos_i[cols], eta1, _params_to_eta(y, absorbing), polarization) - R1, w1)
+            return _weigh(_reflectance_fit(cos_i[cols], eta1, _params_to_eta(y, absorbing), polarization) - R1, w1)
 
         y0, alt = _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization)
     one = lambda R1, w1, y1: _fit_one(cos_i, R1, w1, eta1, y1, polarization=polarization, absorbing=absorbing,
@@ -646,6 +640,18 @@ def _bucket(idx):
     return np.concatenate([idx, np.full(n - idx.size, idx[0])])
 
 
+def _solve_subset(res, idx, starts, theta, R, w, eta1, solver, lm, kw):
+    """The curves `idx` solved again from `starts[idx]` in one batched call (padded, see `_bucket`;
+    Levenberg-Marquardt refitting what Gauss-Newton does not converge on, when `lm` is given):
+    (their new fits, their current fits), both as NumPy pytrees."""
+    pad = _bucket(idx)
+    sub, _, _ = _fit_batch(theta, R[pad], w[pad], eta1, starts[pad], solver=solver, use_init=True, **kw)
+    if lm is not None:
+        sub = _refit(sub, theta, R[pad], w[pad], eta1, starts[pad], lm, True, kw)
+    return (jax.tree_util.tree_map(lambda a: np.asarray(a[:idx.size]), sub),
+            jax.tree_util.tree_map(lambda a: np.asarray(a[idx]), res))
+
+
 def _second_branch(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
     """Solve the curves whose other branch may fit as well, and report honestly when it does.
 
@@ -663,12 +669,7 @@ def _second_branch(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
     amb = np.flatnonzero(np.asarray(ratio) <= _BRANCH_RATIO)
     if not amb.size:
         return res
-    pad = _bucket(amb)
-    sub, _, _ = _fit_batch(theta, R[pad], w[pad], eta1, alt[pad], solver=solver, use_init=True, **kw)
-    if lm is not None:
-        sub = _refit(sub, theta, R[pad], w[pad], eta1, alt[pad], lm, True, kw)
-    sub = jax.tree_util.tree_map(lambda a: np.asarray(a[:amb.size]), sub)
-    mine = jax.tree_util.tree_map(lambda a: np.asarray(a[amb]), res)
+    sub, mine = _solve_subset(res, amb, alt, theta, R, w, eta1, solver, lm, kw)
     e1 = float(eta1)
     other = sub.converged & ((sub.eta < e1) != (mine.eta < e1))
     dof = R.shape[-1] - 1
@@ -707,10 +708,7 @@ def _absorbing_restart(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
     again = np.flatnonzero(np.asarray(ratio) == 0)
     if not again.size:
         return res
-    pad = _bucket(again)
-    sub, _, _ = _fit_batch(theta, R[pad], w[pad], eta1, alt[pad], solver=solver, use_init=True, **kw)
-    sub = jax.tree_util.tree_map(lambda a: np.asarray(a[:again.size]), sub)
-    mine = jax.tree_util.tree_map(lambda a: np.asarray(a[again]), res)
+    sub, mine = _solve_subset(res, again, alt, theta, R, w, eta1, solver, lm, kw)
     better = sub.converged & (~mine.converged | (sub.chi2_reduced < mine.chi2_reduced))
     if not better.any():
         return res

@@ -464,7 +464,7 @@ def test_complex_fit_model_and_jacobian_match_mpmath(pol):
     """The complex fits' one-loop model and its closed-form derivative in n and k (the solver's
     Jacobian) against the 50-digit reflectance and mpmath.diff: absolute 1e-14, relative 1e-9."""
     import mpmath as mp
-    from jaxoptics._fit import _model_complex
+    from jaxoptics._fit import _model
     from jaxoptics._mpref import fresnel_ref, mpf
 
     def R_ref(c, a, n, k):
@@ -475,11 +475,11 @@ def test_complex_fit_model_and_jacobian_match_mpmath(pol):
         for eta in (0.2 + 3j, 1.5 + 0.01j, 2.9 + 1.0j, 0.05 + 0.5j, 4.0 + 6.0j):
             for c in (1.0, 0.9, 0.5, 0.1, 1e-3):
                 args = (jnp.float64(c), jnp.float64(a), jnp.complex128(eta))
-                got = float(_model_complex(*args, pol))
+                got = float(_model(*args, pol))
                 want = float(R_ref(mpf(c), mpf(a), mpf(eta.real), mpf(eta.imag)))
                 assert abs(got - want) < 1e-14, (pol, a, eta, c, got, want)
                 for t, j in ((1.0, 0), (1j, 1)):
-                    d = float(jax.jvp(lambda z: _model_complex(args[0], args[1], z, pol), (args[2],), (jnp.complex128(t),))[1])
+                    d = float(jax.jvp(lambda z: _model(args[0], args[1], z, pol), (args[2],), (jnp.complex128(t),))[1])
                     x0 = [mpf(eta.real), mpf(eta.imag)]
                     w = float(mp.diff(lambda s: R_ref(mpf(c), mpf(a), *[s if q == j else x0[q] for q in range(2)]), x0[j]))
                     assert abs(d - w) <= 1e-9 * abs(w) + 1e-14, (pol, a, eta, c, j, d, w)
