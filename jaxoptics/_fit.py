@@ -74,7 +74,7 @@ def _reflectance_plain(cos_i, eta1, eta2, polarization):
     accuracy far below any measurement noise, and pays for the kernel's guards and branches in
     every solver step. Here: the textbook amplitudes on k_t^2 formed as in `fresnel` (exact
     `eta2 - eta1`; for `eta1 > 2 eta2` the form that cancels only at the scale of eta2^2), one
-    select at the end. Absolute error a few 1e-16 (tested against `fresnel` and mpmath), except
+    select at the end. Absolute error at most 1e-15 (tested against 50-digit mpmath), except
     within rounding of the critical angle, where both are ill-conditioned. On the fits' shapes the
     careful kernel split into four loops in the start and was 14% of a 10^4-curve fit in the
     solver (measured).
@@ -219,13 +219,13 @@ class FitResult(eqx.Module):
       not given); about 1 for a good model with correct `sigma`.
     - `num_steps`: `(...)` solver iterations.
     - `eta_alt`: `(...)` the other branch's index where the data cannot tell it from `eta`, else
-      NaN (real fits). Below the critical angle a medium less dense than the incident one
-      (`eta2 < eta1`) and a denser one give similar curves; where the data stop short of what
-      separates them (the TIR plateau, large angles) both fit. Both branches are solved, `eta` is
-      the one with the smaller chi-square, and where the other is within `Delta chi2 < 9` (three
-      standard deviations: not excluded by the data) it is reported here and `stderr` includes the distance to it
-      (`sqrt(stderr_local^2 + (eta - eta_alt)^2)`, the covariance likewise): the data do not
-      determine the index better than that. Always NaN for complex fits.
+      NaN (always NaN for complex fits). Below the critical angle a medium less dense than the
+      incident one (`eta2 < eta1`) and a denser one give similar curves; where the data stop short
+      of what separates them (the TIR plateau, large angles) both fit. Both branches are solved,
+      `eta` is the one with the smaller chi-square, and where the other is within
+      `Delta chi2 < 9` (three standard deviations: not excluded by the data) it is reported here
+      and `stderr` includes the distance to it (`sqrt(stderr_local^2 + (eta - eta_alt)^2)`, the
+      covariance likewise): the data do not determine the index better than that.
     """
 
     eta: jax.Array
