@@ -155,20 +155,15 @@ def _model_jvp(polarization, primals, tangents):
     cos_i, eta1, eta2 = primals
     out = _model(cos_i, eta1, eta2, polarization)
     dc, de1, de2 = tangents
-    d_out = jnp.zeros_like(out)
-    if type(de2) is not SymbolicZero:
-        copies = _own_loop(cos_i, eta1, eta2)
-        if jnp.iscomplexobj(eta2):
-            G = _reflectance_complex_grad(*copies, polarization)
-            d_out = d_out + jnp.real(G) * jnp.real(de2) - jnp.imag(G) * jnp.imag(de2)
-        else:
-            d_out = d_out + _reflectance_d_eta2(*copies, polarization) * de2
-    if type(dc) is not SymbolicZero or type(de1) is not SymbolicZero:  # not used by the fits
-        inst = lambda d, x: jnp.zeros_like(x) if type(d) is SymbolicZero else d
-        _, d_rest = jax.jvp(lambda c, a: _reflectance_fit(c, a, eta2, polarization), (cos_i, eta1),
-                            (inst(dc, cos_i), inst(de1, eta1)))
-        d_out = d_out + d_rest
-    return out, d_out
+    if type(dc) is not SymbolicZero or type(de1) is not SymbolicZero:
+        raise NotImplementedError("the fits' model is differentiated in eta2 only (angles and eta1 are data)")
+    if type(de2) is SymbolicZero:
+        return out, jnp.zeros_like(out)
+    copies = _own_loop(cos_i, eta1, eta2)
+    if jnp.iscomplexobj(eta2):
+        G = _reflectance_complex_grad(*copies, polarization)
+        return out, jnp.real(G) * jnp.real(de2) - jnp.imag(G) * jnp.imag(de2)
+    return out, _reflectance_d_eta2(*copies, polarization) * de2
 
 
 def synthetic_reflectance(key, eta2, theta, *, eta1=1.0, polarization="unpolarized", noise=0.0):
