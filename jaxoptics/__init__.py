@@ -17,6 +17,10 @@ from ._refract import brewster_angle as brewster_angle
 from ._refract import critical_angle as critical_angle
 from ._refract import reflect as reflect
 from ._refract import refract as refract
+from ._stack import Ellipsometry as Ellipsometry
+from ._stack import StackResult as StackResult
+from ._stack import ellipsometry as ellipsometry
+from ._stack import stack as stack
 
 __version__ = "0.1.0"
 from ._fit import FitResult as FitResult
