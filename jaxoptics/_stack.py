@@ -270,9 +270,11 @@ def _group(kz0, n0, kze, ne, q, nsq, a, *, real_incident: bool):
             norm_den = jnp.real(kz0 * jnp.conj(n0sq))
         if real_incident:  # kz0, n0 real: the ratio is 4 kz0 (s) or 4 n0^2 kz0 (p), 0 at grazing
             norm = 4 * jnp.real(kz0) * (1 if pol == "s" else jnp.real(n0sq))
-        else:  # an incoherent absorbing layer lighting the group: tmm's Re(n cos) normalization
+        else:  # an incoherent absorbing layer lighting the group: tmm's Re(n cos) normalization.
+            # Where the wave in that layer is evanescent it carries no power toward the group: the
+            # fluxes are 0 (and no light reaches such a layer either: its forward T is 0 too).
             pos = norm_den > 0
-            norm = jnp.where(pos, norm_num / jnp.where(pos, norm_den, 1), jnp.where(norm_num == 0, 0, jnp.nan))
+            norm = jnp.where(pos, norm_num / jnp.where(pos, norm_den, 1), 0)
         # D = 0 only at grazing incidence on a stack with no interface at all (every medium of the
         # incident medium's index): r = 0, t = 1, as `fresnel` there. The divisor is replaced too, so
         # no NaN leaks into gradients.
@@ -281,7 +283,7 @@ def _group(kz0, n0, kze, ne, q, nsq, a, *, real_incident: bool):
         r = jnp.where(ok, r / D, 0)
         t = jnp.where(ok, tnum * G / D, 1)
         # flux through each interface, times the scale factors in front of it (module docs)
-        flux = jnp.where(ok, flux_hat * (norm / _abs2(D)) * X, 1)
+        flux = jnp.where(ok[None], flux_hat * (norm / _abs2(D))[None] * X, 1)
         out.append(_Group(r, t, _abs2(r), flux[-1], flux[0], flux[:-1] - flux[1:]))
     return out[0], out[1]
 
@@ -305,7 +307,7 @@ def _check_concrete(n, d, wavelength, cos_i):
             b = np.asarray(bad(xs))
             if b.any():
                 idx = tuple(int(i) for i in np.argwhere(b)[0])
-                raise ValueError(f"{name}{list(idx)} = {xs[idx]!r}: {what}")
+                raise ValueError(f"{name}{list(idx)} = {xs[idx].item()!r}: {what}")
 
     first_bad(d, lambda x: ~(np.isfinite(x) & (x >= 0)), "thicknesses must be finite and >= 0", "d")
     first_bad(wavelength, lambda x: ~(np.isfinite(x) & (x > 0)), "wavelengths must be finite and > 0", "wavelength")
@@ -449,7 +451,7 @@ def _incoherent(valid, bounds, ki, q, nn, nsq, a):
         G[N - 2] = rho_f[N - 2]
         den[N - 2] = jnp.ones_like(rho_f[N - 2])
         for e in range(N - 3, -1, -1):
-            x = Ppass[e + 1] ** 2 * G[e + 1]
+            x = (Ppass[e + 1] ** 2).astype(G[e + 1].dtype) * G[e + 1]
             dd = 1 - rho_b[e] * x
             ok = dd != 0
             dd = jnp.where(ok, dd, 1)

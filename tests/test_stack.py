@@ -1,0 +1,473 @@
+"""Thin-film stacks: `stack` and `ellipsometry` against tmm, an mpmath transfer-matrix oracle,
+closed forms and physical properties; gradients against mpmath derivatives."""
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import mpmath as mp
+import numpy as np
+import pytest
+import tmm
+
+import jaxoptics as jo
+
+# ---- oracles -------------------------------------------------------------------------------------
+
+
+def mp_stack(pol, n, d, wl, theta, dps=40, exact=False):
+    """Plain characteristic-matrix multilayer at `dps` digits (no scaling: mpmath's exponent range
+    has no overflow). Returns (r, t, R, T) in tmm's conventions, as Python numbers, or as mpmath
+    numbers with `exact` (for `mp.diff`). Independent of the kernel."""
+    with mp.workdps(dps):
+        n = [x if isinstance(x, (mp.mpc, mp.mpf)) else mp.mpc(x) for x in n]
+        n = [mp.mpc(x) for x in n]
+        s2 = (n[0] * mp.sin(theta if isinstance(theta, mp.mpf) else mp.mpf(theta))) ** 2
+        kz = []
+        for x in n:
+            k = mp.sqrt(x * x - s2)
+            kz.append(-k if mp.im(k) < 0 or (mp.im(k) == 0 and mp.re(k) < 0) else k)
+        eta = [k if pol == "s" else x * x / k for k, x in zip(kz, n)]
+        M = mp.eye(2)
+        for j in range(1, len(n) - 1):
+            dl = 2 * mp.pi * mp.mpf(d[j - 1]) / mp.mpf(wl) * kz[j]  # mpf() keeps an mpf as it is
+            M = M * mp.matrix([[mp.cos(dl), -1j * mp.sin(dl) / eta[j]], [-1j * eta[j] * mp.sin(dl), mp.cos(dl)]])
+        v = M * mp.matrix([[1], [eta[-1]]])
+        B, C = v[0], v[1]
+        r = (eta[0] * B - C) / (eta[0] * B + C)
+        if pol == "p":
+            r = -r  # tmm's sign of r_p (r_p = -r_s at normal incidence)
+        Ex = 2 * eta[0] / (eta[0] * B + C)  # exit tangential E per unit incident tangential E
+        if pol == "s":
+            t = Ex
+        else:  # whole in-plane field: E_p = E_x n / k_z on both sides
+            t = Ex * (n[-1] / kz[-1]) / (n[0] / kz[0])
+        R = abs(r) ** 2
+        T = mp.re(Ex * mp.conj(Ex * eta[-1])) / mp.re(eta[0])
+        if exact:
+            return r, t, R, T
+        return complex(r), complex(t), float(R), float(T)
+
+
+def _tmm_case(n, d, wl, theta, inc):
+    """tmm's R, T and absorption per inner layer for both polarizations, or None where tmm refuses
+    the case (it asserts on some evanescent incoherent layers)."""
+    dl = [np.inf] + list(d) + [np.inf]
+    out = {}
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            for pol in "sp":
+                if inc:
+                    c = ["i"] + ["i" if j in inc else "c" for j in range(len(d))] + ["i"]
+                    res = tmm.inc_tmm(pol, n, dl, c, theta, wl)
+                    A = np.array(tmm.inc_absorp_in_each_layer(res))[1:-1]
+                else:
+                    res = tmm.coh_tmm(pol, n, dl, theta, wl)
+                    A = tmm.absorp_in_each_layer(res)[1:-1]
+                out[pol] = (res["R"], res["T"], A, res.get("r"), res.get("t"))
+    except (AssertionError, ValueError, ZeroDivisionError, FloatingPointError):
+        return None
+    if not all(np.all(np.isfinite(np.r_[v[0], v[1], v[2]])) for v in out.values()):
+        return None
+    # an incoherent layer in which the wave is evanescent: tmm's intensity matrices divide by its
+    # (zero) flux and return values outside [0, 1]; the kernel's answer there is tested separately
+    s2 = (n[0].real * np.sin(theta)) ** 2
+    if any(abs(np.sqrt(n[j + 1] ** 2 - s2).real) < 1e-6 for j in inc):
+        return None
+    return out
+
+
+def _random_stacks(rng, K, L):
+    """K random stacks of L media: dielectrics, absorbers, metals, thick absorbers; incident medium
+    sometimes denser than the rest (TIR); angles up to 89 degrees."""
+    n = rng.uniform(1.0, 3.0, (K, L)) + 0j
+    n[:, 0] = rng.uniform(1.0, 2.6, K)
+    kind = rng.random((K, L))
+    n += np.where(kind < 0.25, 1j * rng.uniform(0, 0.6, (K, L)), 0)
+    metal = (kind > 0.9)
+    n = np.where(metal, rng.uniform(0.05, 0.6, (K, L)) + 1j * rng.uniform(2, 7, (K, L)), n)
+    n[:, 0] = n[:, 0].real
+    d = rng.uniform(0, 300, (K, L - 2))
+    thick = rng.random((K, L - 2)) < 0.1
+    d = np.where(thick, rng.uniform(1e3, 2e4, (K, L - 2)), d)
+    zero = rng.random((K, L - 2)) < 0.05
+    d = np.where(zero, 0.0, d)
+    wl = rng.uniform(250, 1500, K)
+    theta = rng.uniform(0, np.deg2rad(89), K)
+    return n, d, wl, theta
+
+
+# ---- agreement with tmm --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("L", [2, 3, 4, 6, 10, 17, 32])
+def test_coherent_stacks_agree_with_tmm(L):
+    """Random stacks of 0 to 30 inner layers (metals, absorbers, thick layers, TIR) against tmm's
+    coh_tmm, absorp_in_each_layer and ellips, to 1e-10 (absolute) in float64."""
+    rng = np.random.default_rng(L)
+    K = 40
+    n, d, wl, theta = _random_stacks(rng, K, L)
+    res = jax.jit(jo.stack)(n, d, wl, np.cos(theta))
+    ell = jax.jit(jo.ellipsometry)(n, d, wl, np.cos(theta))
+    compared = 0
+    for k in range(K):
+        ref = _tmm_case(n[k], d[k], wl[k], theta[k], ())
+        if ref is None:
+            continue
+        compared += 1
+        for pol in "sp":
+            R, T, A, r, t = ref[pol]
+            got = {f: np.asarray(getattr(res, f"{f}_{pol}"))[k] for f in ("R", "T", "A", "r", "t")}
+            np.testing.assert_allclose(got["R"], R, atol=1e-10, rtol=0)
+            np.testing.assert_allclose(got["T"], T, atol=1e-10, rtol=0)
+            np.testing.assert_allclose(got["A"], A, atol=1e-10, rtol=0)
+            np.testing.assert_allclose(got["r"], r, atol=1e-10, rtol=0)
+            np.testing.assert_allclose(got["t"], t, atol=1e-10, rtol=1e-10)
+        e = tmm.ellips(n[k], [np.inf] + list(d[k]) + [np.inf], theta[k], wl[k])
+        np.testing.assert_allclose(float(ell.psi[k]), e["psi"], atol=1e-10)
+        if abs(np.asarray(res.r_p)[k]) > 1e-6:  # delta is undefined where r_p = 0
+            dd = (float(ell.delta[k]) - e["Delta"] + np.pi) % (2 * np.pi) - np.pi
+            assert abs(dd) < 1e-9, (k, float(ell.delta[k]), e["Delta"])
+    assert compared >= 0.8 * K
+
+
+@pytest.mark.parametrize("L,inc", [(3, (0,)), (4, (1,)), (5, (0, 2)), (6, (2,)), (8, (0, 3, 5)), (12, (4, 9))])
+def test_incoherent_stacks_agree_with_tmm(L, inc):
+    """Mixed coherent/incoherent stacks against tmm's inc_tmm and inc_absorp_in_each_layer."""
+    rng = np.random.default_rng(100 + L)
+    K = 30
+    n, d, wl, theta = _random_stacks(rng, K, L)
+    for j in inc:  # incoherent layers are thick
+        d[:, j] = rng.uniform(2e3, 5e4, K)
+    res = jax.jit(jo.stack, static_argnames="incoherent")(n, d, wl, np.cos(theta), incoherent=inc)
+    assert res.r_s is None and res.t_p is None
+    compared = 0
+    for k in range(K):
+        ref = _tmm_case(n[k], d[k], wl[k], theta[k], inc)
+        if ref is None:
+            continue
+        compared += 1
+        for pol in "sp":
+            R, T, A, _, _ = ref[pol]
+            np.testing.assert_allclose(np.asarray(getattr(res, f"R_{pol}"))[k], R, atol=1e-10, rtol=0)
+            np.testing.assert_allclose(np.asarray(getattr(res, f"T_{pol}"))[k], T, atol=1e-10, rtol=0)
+            np.testing.assert_allclose(np.asarray(getattr(res, f"A_{pol}"))[k], A, atol=1e-10, rtol=0)
+    assert compared >= 0.6 * K
+
+
+def test_mpmath_oracle_agrees_with_tmm():
+    """The mpmath oracle used for the gradient tests is itself checked against tmm."""
+    rng = np.random.default_rng(5)
+    n, d, wl, theta = _random_stacks(rng, 10, 5)
+    for k in range(10):
+        for pol in "sp":
+            ref = tmm.coh_tmm(pol, n[k], [np.inf] + list(d[k]) + [np.inf], theta[k], wl[k])
+            r, t, R, T = mp_stack(pol, n[k], d[k], wl[k], theta[k])
+            assert abs(r - ref["r"]) < 1e-12 and abs(t - ref["t"]) < 1e-12 * max(1, abs(t))
+            assert abs(R - ref["R"]) < 1e-12 and abs(T - ref["T"]) < 1e-12
+
+
+# ---- closed forms --------------------------------------------------------------------------------
+
+
+def test_one_interface_equals_fresnel():
+    c = np.array([1.0, 0.8, 0.3, 1e-6, 0.0])[:, None]
+    for n0, n1 in [(1.0, 1.5), (1.5, 1.0), (1.2, 0.2 + 3.0j), (1.33, 1.33), (2.0, 1.0 + 0.1j)]:
+        s = jo.stack(np.array([n0, n1]), np.zeros(0), 500.0, c[:, 0])
+        f = jo.fresnel_amplitudes(c[:, 0], n0, n1)
+        for a, b in [(s.r_s, f.r_s), (s.r_p, f.r_p), (s.t_s, f.t_s), (s.t_p, f.t_p)]:
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=4e-16)
+        R_s, R_p = jo.fresnel_sp(c[:, 0], n0, n1)
+        np.testing.assert_allclose(np.asarray(s.R_s), np.asarray(R_s), atol=4e-16)
+        np.testing.assert_allclose(np.asarray(s.R_p), np.asarray(R_p), atol=4e-16)
+
+
+@pytest.mark.parametrize("n0,n1,ns", [(1.0, 1.38, 1.52), (1.0, 2.0, 1.5), (1.33, 1.8, 3.5)])
+def test_quarter_wave_film(n0, n1, ns):
+    """A film of optical thickness lambda/4 at normal incidence: R = ((n0 ns - n1^2)/(n0 ns + n1^2))^2."""
+    wl = 550.0
+    res = jo.stack(np.array([n0, n1, ns]), np.array([wl / (4 * n1)]), wl, 1.0)
+    expect = ((n0 * ns - n1**2) / (n0 * ns + n1**2)) ** 2
+    np.testing.assert_allclose(float(res.R), expect, rtol=1e-13)
+    # half-wave: the film is absent
+    res = jo.stack(np.array([n0, n1, ns]), np.array([wl / (2 * n1)]), wl, 1.0)
+    np.testing.assert_allclose(float(res.R), ((n0 - ns) / (n0 + ns)) ** 2, rtol=1e-12)
+
+
+def test_incoherent_slab_closed_form():
+    """A thick absorbing slab in air, incoherent: R = R1 + T1^2 R1 P^2 / (1 - R1^2 P^2),
+    T = T1^2 P / (1 - R1^2 P^2) with the single-interface R1 and the single-pass P."""
+    n1, wl, d = 1.5 + 1e-5j, 600.0, 1e5
+    for c in [1.0, 0.7, 0.2]:
+        s2 = 1 - c * c
+        kz = np.sqrt(n1**2 - s2)
+        P = np.exp(-4 * np.pi * d * kz.imag / wl)
+        res = jo.stack(np.array([1.0, n1, 1.0]), np.array([d]), wl, c, incoherent=(0,))
+        for pol in "sp":
+            r = jo.stack(np.array([1.0, n1]), np.zeros(0), wl, c)
+            R1 = float(getattr(r, f"R_{pol}"))
+            T1 = 1 - R1  # lossless interface: the absorption is in the bulk
+            np.testing.assert_allclose(float(getattr(res, f"R_{pol}")), R1 + T1**2 * R1 * P**2 / (1 - R1**2 * P**2), rtol=1e-6)
+            np.testing.assert_allclose(float(getattr(res, f"T_{pol}")), T1**2 * P / (1 - R1**2 * P**2), rtol=1e-6)
+
+
+def test_incoherent_ellipsometry_of_a_slab_is_the_path_sum():
+    """psi/delta of a transparent slab with its back face, incoherent: <r_p conj(r_s)> is the
+    sum over the paths with 0, 1, 2, ... internal round trips, each a product of Fresnel amplitudes."""
+    n0, n1, c = 1.0, 1.7, np.cos(np.deg2rad(65))
+    res = jo.stack(np.array([n0, n1, n0]), np.array([1e6]), 633.0, c, incoherent=(0,))
+    a = jo.fresnel_amplitudes(c, n0, n1)
+    c1 = np.sqrt(1 - (n0 / n1) ** 2 * (1 - c * c))
+    b = jo.fresnel_amplitudes(c1, n1, n0)
+    X = complex(a.r_p * np.conj(a.r_s))
+    Rs, Rp = float(a.R_s), float(a.R_p)
+    term_p, term_s = complex(a.t_p * b.t_p), complex(a.t_s * b.t_s)
+    for k in range(200):  # internal round trips: reflect (k+1) times at the back, k at the front
+        ap = term_p * complex(b.r_p) ** (2 * k + 1)
+        as_ = term_s * complex(b.r_s) ** (2 * k + 1)
+        X += ap * np.conj(as_)
+        Rp += abs(ap) ** 2
+        Rs += abs(as_) ** 2
+    ell = jo.ellipsometry(np.array([n0, n1, n0]), np.array([1e6]), 633.0, c, incoherent=(0,))
+    np.testing.assert_allclose(complex(res.rp_rs), X, rtol=1e-12)
+    np.testing.assert_allclose(float(ell.psi), np.arctan(np.sqrt(Rp / Rs)), rtol=1e-12)
+    assert abs((float(ell.delta) - np.angle(-X) + np.pi) % (2 * np.pi) - np.pi) < 1e-12
+    assert abs(X) < np.sqrt(Rp * Rs) * (1 - 1e-3)  # depolarized
+
+
+def test_ellipsometry_conventions():
+    """delta = 0 at normal incidence, pi past Brewster's angle of a bare dielectric, and psi = 45
+    degrees at normal incidence; for a film, psi/delta follow from -r_p/r_s."""
+    b = np.arctan(1.5)
+    e = jo.ellipsometry(np.array([1.0, 1.5]), np.zeros(0), 500.0, np.cos(np.array([0.0, b - 0.1, b + 0.1])))
+    np.testing.assert_allclose(np.asarray(e.psi)[0], np.pi / 4, rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(e.delta), [0.0, 0.0, np.pi], atol=1e-15)
+    assert np.all(np.asarray(e.delta) > -np.pi)
+    # SiO2 (1.46) 100 nm on Si (3.88 + 0.02i) at 70 degrees, 633 nm: psi/delta from the oracle
+    n, d = np.array([1.0, 1.46, 3.88 + 0.02j]), np.array([100.0])
+    rs = mp_stack("s", n, d, 633.0, np.deg2rad(70))[0]
+    rp = mp_stack("p", n, d, 633.0, np.deg2rad(70))[0]
+    e = jo.ellipsometry(n, d, 633.0, np.cos(np.deg2rad(70)))
+    np.testing.assert_allclose(float(e.psi), np.arctan(abs(rp / rs)), rtol=1e-13)
+    np.testing.assert_allclose(float(e.delta), np.angle(-rp / rs), rtol=1e-13)
+
+
+# ---- physical properties -------------------------------------------------------------------------
+
+
+def test_energy_conservation_and_reciprocity():
+    rng = np.random.default_rng(11)
+    n, d, wl, theta = _random_stacks(rng, 200, 8)
+    n[:, -1] = n[:, -1].real  # reciprocity with real outer media
+    res = jo.stack(n, d, wl, np.cos(theta))
+    for pol in "sp":
+        total = getattr(res, f"R_{pol}") + getattr(res, f"T_{pol}") + getattr(res, f"A_{pol}").sum(-1)
+        np.testing.assert_allclose(np.asarray(total), 1.0, atol=1e-13)
+        assert np.all(np.asarray(getattr(res, f"A_{pol}")) > -1e-13)
+    # the reversed stack lit at the corresponding angle transmits the same (Stokes reciprocity)
+    s_exit = n[:, 0].real * np.sin(theta) / n[:, -1].real
+    ok = s_exit < 1
+    c_exit = np.sqrt(1 - np.minimum(s_exit, 1) ** 2)
+    rev = jo.stack(n[:, ::-1].copy(), d[:, ::-1].copy(), wl, c_exit)
+    for pol in "sp":
+        np.testing.assert_allclose(np.asarray(getattr(rev, f"T_{pol}"))[ok], np.asarray(getattr(res, f"T_{pol}"))[ok], atol=1e-12)
+
+
+def test_zero_thickness_layer_is_absent():
+    n = np.array([1.0, 1.46, 2.2 + 0.3j, 2.0, 3.9 + 0.02j])
+    d = np.array([100.0, 0.0, 50.0])
+    c = np.linspace(0.0, 1.0, 11)
+    a = jo.stack(n, d, 500.0, c)
+    b = jo.stack(np.delete(n, 2), np.delete(d, 1), 500.0, c)
+    for f in ("r_s", "r_p", "t_s", "t_p"):
+        np.testing.assert_allclose(np.asarray(getattr(a, f)), np.asarray(getattr(b, f)), atol=1e-15)
+    np.testing.assert_array_equal(np.asarray(a.A_s[:, 1]), 0.0)
+
+
+def test_index_matched_layers_and_grazing():
+    # layers of the incident medium's index change nothing; at grazing incidence R = 1, r = -1
+    a = jo.stack(np.array([1.5, 1.5, 1.5, 1.0]), np.array([120.0, 30.0]), 600.0, np.array([1.0, 0.5, 0.0]))
+    b = jo.stack(np.array([1.5, 1.0]), np.zeros(0), 600.0, np.array([1.0, 0.5, 0.0]))
+    np.testing.assert_allclose(np.asarray(a.R_s), np.asarray(b.R_s), atol=1e-15)
+    np.testing.assert_allclose(np.asarray(a.r_p[-1]), -1.0, atol=1e-15)
+    # a stack with no interface at all, at grazing incidence: r = 0, t = 1 (as fresnel)
+    z = jo.stack(np.array([1.5, 1.5, 1.5]), np.array([100.0]), 600.0, 0.0)
+    assert float(z.R) == 0.0 and float(z.T) == 1.0 and complex(z.t_s) == 1.0
+
+
+def test_thick_absorbers_do_not_overflow():
+    """d k / lambda from 10 to 10^7: transmission decays to 0, R is the bulk reflectance, all
+    finite, gradients too (plain transfer matrices overflow here)."""
+    for dtype in (np.float32, np.float64):
+        ratio = np.array([1e1, 1e3, 1e5, 1e7])
+        n = np.array([1.0, 1.5, 2.0 + 0.5j, 1.5], dtype=np.complex64 if dtype == np.float32 else np.complex128)
+        d = np.stack([np.full(4, 80.0), ratio * 600 / 0.5], -1).astype(dtype)
+        res = jo.stack(n, d, dtype(600), dtype(0.8))
+        bulk = jo.stack(n[:3], d[:, :1], dtype(600), dtype(0.8))
+        assert np.all(np.isfinite(np.asarray(res.R))) and np.all(np.asarray(res.T)[1:] == 0)
+        # the same reflectance by two computations (the 4-medium stack and the 3-medium one: about 40
+        # roundings each)
+        np.testing.assert_allclose(np.asarray(res.R)[1:], np.asarray(bulk.R)[1:], rtol=64 * np.finfo(dtype).eps)
+        g = jax.grad(lambda d: jo.stack(n, d, dtype(600), dtype(0.8)).R.sum())(d)
+        assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_evanescent_incoherent_layer_passes_no_light():
+    """A thick incoherent layer in which the wave is evanescent is a semi-infinite medium under TIR:
+    R = 1 for a lossless stack, T = 0, nothing absorbed behind it (tunnelling is coherent)."""
+    th = np.deg2rad(70)
+    n = np.array([1.5, 1.2, 1.0, 1.5 + 0.01j, 1.5])
+    res = jo.stack(n, np.array([100.0, 5e4, 300.0]), 600.0, np.cos(th), incoherent=(1,))
+    for pol in "sp":
+        np.testing.assert_allclose(float(getattr(res, f"R_{pol}")), 1.0, atol=1e-14)
+        assert float(getattr(res, f"T_{pol}")) == 0.0
+        np.testing.assert_allclose(np.asarray(getattr(res, f"A_{pol}")), 0.0, atol=1e-14)
+
+
+def test_frustrated_tir_tunnelling():
+    """Glass | air gap | glass past the critical angle: the transmission of the gap decays as
+    exp(-2 kappa d) for thick gaps and matches the oracle at every gap."""
+    th = np.deg2rad(60)
+    gaps = np.array([0.0, 10.0, 100.0, 400.0, 2000.0])
+    res = jo.stack(np.array([1.5, 1.0, 1.5]), gaps[:, None], 600.0, np.cos(th))
+    for k, g in enumerate(gaps):
+        for pol in "sp":
+            _, _, R, T = mp_stack(pol, [1.5, 1.0, 1.5], [g], 600.0, th)
+            np.testing.assert_allclose(float(getattr(res, f"R_{pol}")[k]), R, atol=1e-14)
+            np.testing.assert_allclose(float(getattr(res, f"T_{pol}")[k]), T, rtol=1e-12, atol=1e-300)
+    assert float(res.T_s[0]) == pytest.approx(1.0, abs=1e-15)
+
+
+# ---- gradients -----------------------------------------------------------------------------------
+
+
+def _grad_cases():
+    """(name, n, d, wl, theta) at the special points: an inner layer exactly at its own critical
+    angle, TIR into the exit medium, a zero-thickness layer, k = 0, a thick absorber, normal and
+    near-grazing incidence."""
+    th = 0.7
+    return [
+        ("inner critical", [1.5, 1.5 * np.sin(th), 1.45, 1.0], [120.0, 80.0], 550.0, th),
+        ("exit TIR", [1.6, 1.38, 2.1, 1.0], [90.0, 40.0], 600.0, 1.2),
+        ("zero thickness", [1.0, 1.46, 2.0, 3.9 + 0.02j], [100.0, 0.0], 500.0, 0.5),
+        ("k = 0", [1.0, 1.46, 2.0 + 0.0j, 1.52], [100.0, 60.0], 500.0, 0.3),
+        ("thick absorber", [1.0, 2.0 + 0.01j, 1.5], [3e4], 600.0, 0.4),
+        ("normal", [1.0, 1.38, 2.3, 1.52], [99.6, 59.8], 550.0, 0.0),
+        ("near grazing", [1.0, 1.38, 0.2 + 3.0j], [99.6], 550.0, 1.55),
+    ]
+
+
+@pytest.mark.parametrize("case", _grad_cases(), ids=lambda c: c[0])
+def test_gradients_match_mpmath(case):
+    """d R_s, d R_p with respect to each thickness, each n and k, the wavelength and the angle,
+    against mpmath's numerical derivatives of the 40-digit oracle."""
+    _, n, d, wl, th = case
+    n = np.asarray(n, complex)
+    d = np.asarray(d, float)
+
+    def ours(pol, nr, ni, d, wl, th):
+        res = jo.stack(jax.lax.complex(nr, ni), d, wl, jnp.cos(th))
+        return getattr(res, f"R_{pol}")
+
+    for pol in "sp":
+        args = (jnp.asarray(n.real), jnp.asarray(n.imag), jnp.asarray(d), jnp.float64(wl), jnp.float64(th))
+        g = jax.grad(lambda *a: ours(pol, *a), argnums=(0, 1, 2, 3, 4))(*args)
+        assert all(np.all(np.isfinite(np.asarray(x))) for x in g), (case[0], pol, g)
+
+        def ref(which, idx, x):
+            nn, dd, w, t = [mp.mpc(v) for v in n], list(d), wl, th
+            if which == 0:
+                nn[idx] = mp.mpc(x, n[idx].imag)
+            elif which == 1:
+                nn[idx] = mp.mpc(n[idx].real, x)
+            elif which == 2:
+                dd[idx] = x
+            elif which == 3:
+                w = x
+            else:
+                t = x
+            return mp_stack(pol, nn, dd, w, t, dps=40, exact=True)[2]
+
+        with mp.workdps(40):
+            for which, base in enumerate([n.real, n.imag, d, np.array([wl]), np.array([th])]):
+                for idx in range(len(base)):
+                    if which == 0 and idx == 0 and case[0] == "inner critical":
+                        continue  # n0 moves the critical angle onto a branch point of layer 1's k_z
+                    if which == 1 and idx == 0:
+                        continue  # the incident medium is real
+                    if which == 4 and th == 0.0:
+                        continue  # |cos| has a kink at normal incidence
+                    x0 = float(base[idx])
+                    # k is one-sided at k = 0 (k < 0 is gain, another branch): forward differences
+                    direction = 1 if which == 1 else 0
+                    expect = float(mp.diff(lambda x: ref(which, idx, x), mp.mpf(x0), h=mp.mpf(10) ** -12,
+                                           direction=direction))
+                    got = float(np.atleast_1d(np.asarray(g[which]))[idx])
+                    assert abs(got - expect) <= 1e-7 * max(1.0, abs(expect)), (case[0], pol, which, idx, got, expect)
+
+
+def test_float32_gradients_finite_at_special_points():
+    for name, n, d, wl, th in _grad_cases():
+        n32 = np.asarray(n, np.complex64)
+        g = jax.grad(lambda d: jo.stack(n32, d, np.float32(wl), np.float32(np.cos(th))).R)(np.asarray(d, np.float32))
+        assert np.all(np.isfinite(np.asarray(g))), name
+
+
+# ---- API, dtype, bad input -----------------------------------------------------------------------
+
+
+def test_float32_in_float32_out_and_accuracy():
+    rng = np.random.default_rng(3)
+    n, d, wl, theta = _random_stacks(rng, 100, 6)
+    d = np.minimum(d, 500)
+    r64 = jo.stack(n, d, wl, np.cos(theta))
+    r32 = jo.stack(n.astype(np.complex64), d.astype(np.float32), wl.astype(np.float32), np.cos(theta).astype(np.float32))
+    assert r32.R_s.dtype == np.float32 and r32.r_p.dtype == np.complex64 and r32.A_p.dtype == np.float32
+    np.testing.assert_allclose(np.asarray(r32.R), np.asarray(r64.R), atol=2e-4)
+
+
+def test_jit_vmap_and_broadcasting():
+    n = np.array([1.0, 1.46, 3.9 + 0.02j])
+    wl = np.linspace(400, 800, 5)
+    c = np.linspace(0.3, 1, 4)[:, None]
+    d = np.array([[80.0], [120.0], [160.0], [200.0]])  # (4, 1): one thickness per angle row
+    res = jo.stack(n, d[:, None], wl, c)  # n (3,), d (4, 1, 1), wl (5,), c (4, 1) -> (4, 5)
+    assert res.R.shape == (4, 5) and res.A_s.shape == (4, 5, 1)
+    for i in range(4):
+        for j in range(5):
+            one = jo.stack(n, d[i], wl[j], c[i, 0])
+            np.testing.assert_allclose(float(res.R_p[i, j]), float(one.R_p), rtol=1e-14)
+    jitted = jax.jit(jo.stack)(n, d[:, None], wl, c)
+    mapped = jax.vmap(lambda w: jo.stack(n, d[:, None], w, c))(wl[:, None])
+    np.testing.assert_allclose(np.asarray(jitted.R_s), np.asarray(res.R_s), rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(mapped.R_s)[:, :, 0].T, np.asarray(res.R_s), rtol=1e-14)
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(n=np.array([1.0, 1.5, 2.0]), d=np.array([10.0, 20.0])), r"d must have shape \(\.\.\., L-2\)"),
+    (dict(n=np.array([1.0]), d=np.zeros(0)), "L >= 2"),
+    (dict(incoherent=(1,)), "incoherent must hold positions"),
+    (dict(incoherent=(0, 0)), "repeated"),
+    (dict(d=np.array([-5.0])), r"d\[0\] = -5\.0: thicknesses must be finite and >= 0"),
+    (dict(n=np.array([1.0 + 0.1j, 1.5, 2.0])), "incident medium"),
+    (dict(n=np.array([1.0, 1.5 - 0.1j, 2.0])), r"n\[1\]"),
+    (dict(wavelength=0.0), "wavelength"),
+    (dict(d=np.array([1])), "floating dtype"),
+])
+def test_bad_input_raises_before_tracing(kwargs, match):
+    args = dict(n=np.array([1.0, 1.5, 2.0]), d=np.array([10.0]), wavelength=500.0, cos_i=0.5)
+    inc = kwargs.pop("incoherent", ())
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        jo.stack(args["n"], args["d"], args["wavelength"], args["cos_i"], incoherent=inc)
+
+
+def test_out_of_domain_inside_jit_is_nan():
+    f = jax.jit(jo.stack)
+    n = np.array([[1.0, 1.5, 2.0], [1.0, 1.5, -2.0], [1.0, 1.5 - 0.1j, 2.0], [1.0 + 0.1j, 1.5, 2.0]])
+    res = f(n, np.array([[10.0], [10.0], [10.0], [10.0]]), 500.0, 0.5)
+    assert np.isfinite(float(res.R[0]))
+    assert np.all(np.isnan(np.asarray(res.R[1:]))) and np.all(np.isnan(np.asarray(res.A_s[1:])))
+    res = f(np.array([1.0, 1.5, 2.0]), np.array([[-1.0], [np.inf]]), 500.0, 0.5)
+    assert np.all(np.isnan(np.asarray(res.R))) and np.all(np.isnan(np.asarray(jnp.abs(res.r_s))))
