@@ -289,7 +289,8 @@ def fit_table(rows) -> str:
     return "\n".join(out)
 
 
-def run(*, quick=False, sections=("kernels", "fit", "devices"), out_dir="bench_out", sizes=None, mitsuba=True) -> dict:
+def run(*, quick=False, sections=("kernels", "fit", "stack", "devices"), out_dir="bench_out", sizes=None,
+        mitsuba=True) -> dict:
     from tqdm.auto import tqdm
 
     import jax
@@ -299,7 +300,7 @@ def run(*, quick=False, sections=("kernels", "fit", "devices"), out_dir="bench_o
     out.mkdir(parents=True, exist_ok=True)
     report = {"machine": machine_description(), "quick": quick}
     md = [f"Machine: {report['machine']}", ""]
-    total = 6 * ("fit" in sections) + 3 * ("devices" in sections) + 24 * ("kernels" in sections)
+    total = 6 * ("fit" in sections) + 3 * ("devices" in sections) + 24 * ("kernels" in sections) + 3 * ("stack" in sections)
     with tqdm(total=total, desc="bench", unit="step") as bar:
         if "kernels" in sections:
             rows = bench_kernels(quick=quick, progress=bar, sizes=sizes, mitsuba=mitsuba)
@@ -317,6 +318,13 @@ def run(*, quick=False, sections=("kernels", "fit", "devices"), out_dir="bench_o
             rows = bench_fit_in_subprocess(quick=quick, progress=bar)
             report["fit"] = rows
             md += ["### Index fits: 90 angles per curve, float64, noise 1e-3", "", fit_table(rows), ""]
+        if "stack" in sections:
+            from ._bench_stack import LAYERS, bench_stack, stack_table
+
+            rows = bench_stack(quick=quick, progress=bar)
+            report["stack"] = rows
+            md += [f"### Thin-film stacks: {LAYERS} coherent layers on Si, R and T of s and p, (wavelength, angle) "
+                   "points", "", stack_table(rows), ""]
         if "devices" in sections:
             rows = bench_devices(quick=quick, progress=bar)
             report["devices"] = rows
