@@ -210,37 +210,41 @@ class _Group(NamedTuple):
     A: jax.Array  # absorbed in each inner layer, layer axis first: (m, ...)
 
 
-def _group(kz0, n0, kze, ne, q, nsq, a, *, real_incident: bool):
-    """Coherent group: incident medium (kz0, n0), exit medium (kze, ne), inner layers with
-    q = k_z^2, n^2 and a = 2 pi d / lambda stacked on a leading layer axis (m, ...), front to back.
-    All complex, of one dtype. Returns (_Group for s, _Group for p).
+def _group(kz0, n0, kze, ne, nn, a, kz_sq, *, real_incident: bool):
+    """Coherent group: incident medium (kz0, n0), exit medium (kze, ne), inner layers of index
+    `nn` and a = 2 pi d / lambda stacked on a leading layer axis, front to back; `kz_sq(n)` gives a
+    medium's k_z^2 (formed as in `fresnel`, from medium 0 of the stack). `nn`, `a` broadcastable
+    to the batch shape, which they need not have: they are broadcast inside the scan step, so no
+    (layers x points) array is materialized). Complex, one dtype. Returns (s, p) `_Group`s.
 
     The fields are carried from the back to the front by a `lax.scan` over the layers (XLA
     duplicates the two-component recurrence into each consumer when it is unrolled: compile time
     and work then grow much faster than the number of layers)."""
-    m = q.shape[0]
+    m = nn.shape[0]
     one = jnp.ones_like(kze)
-    v_s, v_p = (one, kze), (kze, ne * ne)
+    v_s, v_p = (one, kze), (kze, jnp.broadcast_to(ne * ne, kze.shape))
     if m:
-        # k_z once; the scale factors exp(i a k_z) carry no derivative (module docstring, point 3)
-        kz = jax.lax.stop_gradient(_decaying(jnp.sqrt(q)))
-        c, s = _layer(q, a, kz)
-        q_over_nsq = q / nsq
-
         def step(carry, lay):
-            (Es, Hs), (Ep, Hp) = carry
-            c, s, q, nsq, qn = lay
+            (Es, Hs), (Ep, Hp), S = carry
+            nj, aj = lay
+            q = kz_sq(nj)
+            nsq = nj * nj
+            aj = jnp.broadcast_to(aj, q.shape)
+            # k_z once; the scale factors exp(i a k_z) carry no derivative (module docstring, 3)
+            kz = jax.lax.stop_gradient(_decaying(jnp.sqrt(q)))
+            c, s = _layer(q, aj, kz)
             ws = (c * Es - 1j * s * Hs, -1j * q * s * Es + c * Hs)
-            wp = (c * Ep - 1j * (qn * s) * Hp, -1j * nsq * s * Ep + c * Hp)
-            return (ws, wp), (_flux(*ws), _flux(*wp))
+            wp = (c * Ep - 1j * (q / nsq * s) * Hp, -1j * nsq * s * Ep + c * Hp)
+            S = S + jax.lax.stop_gradient(aj) * kz  # the phases from this layer to the back
+            # the per-interface outputs serve only the absorption: when that is not used, JAX
+            # removes them from the traced program
+            return (ws, wp, S), (_flux(*ws), _flux(*wp), jnp.imag(S))
 
-        # the per-interface fluxes (the scan's outputs) serve only the absorption: when that is
-        # not used, JAX removes them from the traced program
-        (w0s, w0p), (fs, fp) = jax.lax.scan(step, (v_s, v_p), (c, s, q, nsq, q_over_nsq), reverse=True)
-        cum = jnp.cumsum(jax.lax.stop_gradient(a) * kz, axis=0)
-        G = jnp.exp(1j * cum[-1])  # product of the scale factors
+        (w0s, w0p, S_all), (fs, fp, S_k) = jax.lax.scan(step, (v_s, v_p, jnp.zeros_like(kze)), (nn, a), reverse=True)
+        # the product of the scale factors, and |the product in front of interface k|^2
+        G = jnp.exp(1j * S_all)
         X_last = _abs2(G)
-        X = jnp.exp(-2 * jnp.concatenate([jnp.zeros_like(jnp.imag(cum[:1])), jnp.imag(cum[:-1])], axis=0))
+        X = jnp.exp(-2 * (jnp.imag(S_all)[None] - S_k))
     else:
         w0s, w0p = v_s, v_p
         fs = fp = jnp.zeros((0,) + jnp.shape(kze), jnp.real(kze).dtype)
@@ -338,11 +342,15 @@ def _prepare(n, d, wavelength, cos_i, incoherent):
                                cos_i=jnp.shape(cos_i))
     dt = V.float_dtype(n, d, wavelength, cos_i)
     cdt = V.complex_dtype(dt)
-    n = jnp.broadcast_to(jnp.asarray(n, cdt), batch + (L,))
-    d = jnp.broadcast_to(jnp.asarray(d, dt), batch + (L - 2,))
-    wavelength = jnp.broadcast_to(jnp.asarray(wavelength, dt), batch)
-    cos_i = jnp.broadcast_to(jnp.asarray(cos_i, dt), batch)
-    return n, d, wavelength, cos_i, tuple(sorted(int(j) + 1 for j in inc)), dt
+    # ranks padded to the batch's (size-1 axes), sizes not: the per-layer arrays are broadcast
+    # inside the scan step, so no (layers x points) array is materialized
+    def pad(x, dtype, core):
+        x = jnp.asarray(x, dtype)
+        return x.reshape((1,) * (len(batch) + core - x.ndim) + x.shape)
+
+    n, d = pad(n, cdt, 1), pad(d, dt, 1)
+    wavelength, cos_i = pad(wavelength, dt, 0), pad(cos_i, dt, 0)
+    return n, d, wavelength, cos_i, tuple(sorted(int(j) + 1 for j in inc)), dt, batch
 
 
 def _valid(n, d, wavelength, cos_i):
@@ -394,48 +402,48 @@ def stack(n, d, wavelength, cos_i, *, incoherent=()) -> StackResult:
 
     Reference: Born & Wolf, sec. 1.6; Byrnes, arXiv:1603.02720.
     """
-    n, d, wavelength, cos_i, inc, dt = _prepare(n, d, wavelength, cos_i, incoherent)
+    n, d, wavelength, cos_i, inc, dt, batch = _prepare(n, d, wavelength, cos_i, incoherent)
     L = n.shape[-1]
     cdt = n.dtype
     valid = _valid(n, d, wavelength, cos_i)
     c = jnp.where(cos_i < 0, -cos_i, cos_i)  # |cos_i|, derivative +1 at 0 (as in fresnel)
     n0 = jnp.real(n[..., 0])
-    ki = (n0 * c).astype(cdt)
+    ki = jnp.broadcast_to((n0 * c).astype(cdt), batch)
     n0c = n0.astype(cdt)
-    # per medium, layer axis first: k_z^2 (formed as in `fresnel`), n^2, a = 2 pi d / lambda
+    # per medium, layer axis first (not broadcast to the batch: the scan step does that)
     first = lambda x: jnp.moveaxis(x, -1, 0)
-    q = first(_kt_squared(ki[..., None], n0c[..., None], n)[0])
     nn = first(n)
-    nsq = nn * nn
     a = first((2 * jnp.pi / wavelength)[..., None] * d).astype(cdt)  # inner layers only: a[j - 1]
-    kz_exit = _kz_outer(q[L - 1])
+    kz_sq = lambda nj: _kt_squared(ki, n0c, nj)[0]  # k_z^2 formed as in `fresnel`
+    kz_exit = _kz_outer(kz_sq(nn[L - 1]))
     if not inc:
-        s, p = _group(ki, n0c, kz_exit, nn[L - 1], q[1:L - 1], nsq[1:L - 1], a, real_incident=True)
+        s, p = _group(ki, n0c, kz_exit, nn[L - 1], nn[1:L - 1], a, kz_sq, real_incident=True)
         return _finish(valid, s.R, p.R, s.T, p.T, list(s.A), list(p.A), (s.r, p.r, s.t, p.t), p.r * jnp.conj(s.r))
-    return _incoherent(valid, (0,) + inc + (L - 1,), ki, q, nn, nsq, a)
+    return _incoherent(valid, (0,) + inc + (L - 1,), ki, nn, a, kz_sq)
 
 
 def _finish(valid, Rs, Rp, Ts, Tp, As, Ap, amps, rp_rs):
-    nan = lambda x: jnp.where(valid, x, jnp.nan)
+    nan = lambda x: jnp.where(valid, x, jnp.nan)  # (and broadcast to the batch shape)
     A_s = jnp.stack([nan(x) for x in As], axis=-1) if As else jnp.zeros(Rs.shape + (0,), Rs.dtype)
     A_p = jnp.stack([nan(x) for x in Ap], axis=-1) if Ap else jnp.zeros(Rs.shape + (0,), Rs.dtype)
     amps = tuple(nan(x) for x in amps) if amps is not None else (None,) * 4
     return StackResult(nan(Rs), nan(Rp), nan(Ts), nan(Tp), A_s, A_p, *amps, nan(rp_rs))
 
 
-def _incoherent(valid, bounds, ki, q, nn, nsq, a):
+def _incoherent(valid, bounds, ki, nn, a, kz_sq):
     """Coherent groups between the incoherent layers `bounds[1:-1]` (indices among all media),
     summed in intensity. Arrays have the media (a: inner layers) on the leading axis."""
-    kz = [ki] + [_kz_outer(q[j]) for j in range(1, nn.shape[0])]
+    kz = {j: _kz_outer(kz_sq(nn[j])) for j in bounds[1:]}
+    kz[0] = ki
     N = len(bounds)
     fwd, bwd = [], []
     for e in range(N - 1):
         i0, i1 = bounds[e], bounds[e + 1]
-        fwd.append(_group(kz[i0], nn[i0], kz[i1], nn[i1], q[i0 + 1:i1], nsq[i0 + 1:i1], a[i0:i1 - 1],
+        fwd.append(_group(kz[i0], nn[i0], kz[i1], nn[i1], nn[i0 + 1:i1], a[i0:i1 - 1], kz_sq,
                           real_incident=(e == 0)))
         if e < N - 2:  # lit from behind, from inside incoherent layer i1
             fl = lambda x: jnp.flip(x, axis=0)
-            bwd.append(_group(kz[i1], nn[i1], kz[i0], nn[i0], fl(q[i0 + 1:i1]), fl(nsq[i0 + 1:i1]), fl(a[i0:i1 - 1]),
+            bwd.append(_group(kz[i1], nn[i1], kz[i0], nn[i0], fl(nn[i0 + 1:i1]), fl(a[i0:i1 - 1]), kz_sq,
                               real_incident=False))
     # single-pass intensity transmission of each inner incoherent layer
     Ppass = [None] + [jnp.exp(-2 * jnp.real(a[bounds[e] - 1]) * jnp.imag(kz[bounds[e]])) for e in range(1, N - 1)]

@@ -123,3 +123,23 @@ def test_fit_bench_reports_speed_and_scipy_rows(tmp_path):
     assert any(r["method"].startswith("scipy") and r.get("per_curve_s", 0) > 0 for r in rows)
     text = (tmp_path / "bench.md").read_text()
     assert "| jaxoptics fit_eta (default: Gauss-Newton, LM refit) | 1000 |" in text
+
+
+def test_stack_bench_section(tmp_path, monkeypatch):
+    """The stack section measures tmm, the NumPy baseline, the kernel and its gradient in one run,
+    and the kernel agrees with the baseline (rows computing the same thing)."""
+    import jaxoptics._bench_stack as bs
+
+    monkeypatch.setattr(bs, "points", lambda N, dtype=None, _p=bs.points: _p(4000, dtype))
+    rows = bs.bench_stack(quick=True, repeats=1)
+    methods = [(r["method"], r["dtype"]) for r in rows]
+    assert methods[0] == ("tmm (Python loop, per point)", "float64")
+    for dt in ("float64", "float32"):
+        for m in ("NumPy vectorized transfer matrices", "jaxoptics.stack (R, T; s and p)",
+                  "grad of sum(R) w.r.t. every n, k and d"):
+            assert (m, dt) in methods
+    fwd = {r["dtype"]: r for r in rows if r["method"].startswith("jaxoptics")}
+    assert fwd["float64"]["max_abs_diff_vs_numpy"] < 1e-12
+    assert fwd["float32"]["max_abs_diff_vs_numpy"] < 1e-4
+    assert all(r["run_s"] > 0 for r in rows)
+    assert "x the forward pass" in bs.stack_table(rows)
