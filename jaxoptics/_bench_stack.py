@@ -120,7 +120,6 @@ def bench_stack(*, quick=False, progress=None, repeats=None):
 def stack_table(rows) -> str:
     tmm_row = rows[0]
     np_rows = {r["dtype"]: r for r in rows if r["method"].startswith("NumPy")}
-    fwd = {r["dtype"]: r for r in rows if r["method"].startswith("jaxoptics")}
     out = ["| method | dtype | points | compile (s) | run (s) | per point (ns) | vs tmm | vs NumPy | notes |",
            "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
     for r in rows:
@@ -136,5 +135,4 @@ def stack_table(rows) -> str:
             notes.append(f"max |diff| vs NumPy {r['max_abs_diff_vs_numpy']:.1e}")
         out.append(f"| {r['method']} | {r['dtype']} | {r['points']:,} | {comp} | {r['run_s']:.3f} | "
                    f"{1e9 * r['per_point_s']:.0f} | {vt} | {vn} | {'; '.join(notes)} |")
-    del fwd
     return "\n".join(out)

@@ -147,6 +147,20 @@ def sqrt_where(x, mask):
     return jnp.where(mask, jnp.sqrt(safe), 0)
 
 
+def decaying(kz):
+    """The root with `Im >= 0` (the wave decays away from the interface). The principal root
+    already has it when `Im(q) >= 0`; this also fixes a negative real `q` whose imaginary part is a
+    signed zero."""
+    return jnp.where(jnp.imag(kz) < 0, -kz, kz)
+
+
+def decaying_sqrt(q):
+    """`k_z = sqrt(q)` of a complex `q = k_z**2` on the decaying branch, with the double-where
+    square root (the complex root is singular at 0, the critical angle of an index with k == 0:
+    the derivative there is the finite one-sided value)."""
+    return decaying(sqrt_where(q, q != 0))
+
+
 def _positive_finite(x):
     return (x > 0) & (x < jnp.inf)
 
@@ -233,11 +247,7 @@ def _terms(cos_i, eta1, eta2, sin_sq=None, q_given=None) -> _Terms:
     ki = eta1 * c
     q, diff, m = _kt_squared(ki, eta1, eta2, sin_sq, q_given)
     if jnp.iscomplexobj(q):
-        # the complex square root is singular at 0 (the critical angle of an index with k == 0)
-        kt = sqrt_where(q, q != 0)
-        # The decaying branch, Im(k_t) >= 0. The principal root already has it when Im(q) >= 0;
-        # this also fixes a negative real q whose imaginary part is a signed zero.
-        kt = jnp.where(jnp.imag(kt) < 0, -kt, kt)
+        kt = decaying_sqrt(q)
         tir = jnp.zeros(jnp.shape(q), bool)
     else:
         tir = q < 0

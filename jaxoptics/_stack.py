@@ -86,7 +86,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _validate as V
-from ._fresnel import _kt_squared, sqrt_where
+from ._fresnel import _abs2, _kt_squared, decaying, decaying_sqrt, sqrt_where
 
 
 class StackResult(NamedTuple):
@@ -143,15 +143,6 @@ class Ellipsometry(NamedTuple):
 # ---- the layer's matrix entries, entire in q ---------------------------------------------------
 
 _DS_SERIES_MAX = 1.0  # |a^2 q| below this: d(sin(delta)/k_z)/dq by its Taylor series (12 terms)
-
-
-def _abs2(z):
-    return jnp.real(z) ** 2 + jnp.imag(z) ** 2
-
-
-def _decaying(kz):
-    """The root with Im >= 0 (fixes a negative real q whose imaginary part is a signed zero)."""
-    return jnp.where(jnp.imag(kz) < 0, -kz, kz)
 
 
 def _exprel_from(e, z):
@@ -231,7 +222,7 @@ def _group(kz0, n0, kze, ne, nn, a, kz_sq, *, real_incident: bool):
             nsq = nj * nj
             aj = jnp.broadcast_to(aj, q.shape)
             # k_z once; the scale factors exp(i a k_z) carry no derivative (module docstring, 3)
-            kz = jax.lax.stop_gradient(_decaying(jnp.sqrt(q)))
+            kz = jax.lax.stop_gradient(decaying(jnp.sqrt(q)))
             c, s = _layer(q, aj, kz)
             ws = (c * Es - 1j * s * Hs, -1j * q * s * Es + c * Hs)
             wp = (c * Ep - 1j * (q / nsq * s) * Hp, -1j * nsq * s * Ep + c * Hp)
@@ -250,27 +241,17 @@ def _group(kz0, n0, kze, ne, nn, a, kz_sq, *, real_incident: bool):
         fs = fp = jnp.zeros((0,) + jnp.shape(kze), jnp.real(kze).dtype)
         G, X_last, X = one, jnp.ones(jnp.shape(kze), jnp.real(kze).dtype), fs
     out = []
+    n0sq = n0 * n0
     for pol, (B, C), flux_hat in (("s", w0s, fs), ("p", w0p, fp)):
-        n0sq = n0 * n0
         if pol == "s":
             D = kz0 * B + C
             r = (kz0 * B - C)
             tnum = 2 * kz0
-            norm_num = 4 * _abs2(kz0)
-            norm_den = jnp.real(kz0)
         else:
             D = n0sq * B + kz0 * C
             r = (kz0 * C - n0sq * B)
             tnum = 2 * n0 * ne * kz0
-            norm_num = 4 * _abs2(n0sq) * _abs2(kz0)
-            norm_den = jnp.real(kz0 * jnp.conj(n0sq))
-        if real_incident:  # kz0, n0 real: the ratio is 4 kz0 (s) or 4 n0^2 kz0 (p), 0 at grazing
-            norm = 4 * jnp.real(kz0) * (1 if pol == "s" else jnp.real(n0sq))
-        else:  # an incoherent absorbing layer lighting the group: tmm's Re(n cos) normalization.
-            # Where the wave in that layer is evanescent it carries no power toward the group: the
-            # fluxes are 0 (and no light reaches such a layer either: its forward T is 0 too).
-            pos = norm_den > 0
-            norm = jnp.where(pos, norm_num / jnp.where(pos, norm_den, 1), 0)
+        norm = _flux_norm(pol, kz0, n0sq, real_incident)
         # D = 0 only at grazing incidence on a stack with no interface at all (every medium of the
         # incident medium's index): r = 0, t = 1, as `fresnel` there. The divisor is replaced too, so
         # no NaN leaks into gradients.
@@ -287,6 +268,22 @@ def _group(kz0, n0, kze, ne, nn, a, kz_sq, *, real_incident: bool):
         A = inner - jnp.concatenate([inner[1:], last[None]], axis=0)
         out.append(_Group(r, t, _abs2(r), last, entering, A))
     return out[0], out[1]
+
+
+def _flux_norm(pol, kz0, n0sq, real_incident):
+    """4 / (incident flux per |D|^2): the flux Re(E H*) at an interface times this over |D|^2 is
+    the fraction of the incident power crossing it."""
+    if real_incident:  # kz0, n0 real: 4 kz0 (s) or 4 n0^2 kz0 (p), 0 at grazing incidence
+        return 4 * jnp.real(kz0) * (1 if pol == "s" else jnp.real(n0sq))
+    # an incoherent absorbing layer lighting the group: tmm's Re(n cos) normalization. Where the
+    # wave in that layer is evanescent it carries no power toward the group: the fluxes are 0 (and
+    # no light reaches such a layer either: its forward T is 0 too).
+    if pol == "s":
+        num, den = 4 * _abs2(kz0), jnp.real(kz0)
+    else:
+        num, den = 4 * _abs2(n0sq) * _abs2(kz0), jnp.real(kz0 * jnp.conj(n0sq))
+    pos = den > 0
+    return jnp.where(pos, num / jnp.where(pos, den, 1), 0)
 
 
 def _flux(E, H):
@@ -321,7 +318,6 @@ def _check_concrete(n, d, wavelength, cos_i):
 
 def _prepare(n, d, wavelength, cos_i, incoherent):
     n = V.as_index(n, "n", allow_complex=True)
-    n = jnp.asarray(n) if not hasattr(n, "shape") else n
     if jnp.ndim(n) == 0 or jnp.shape(n)[-1] < 2:
         raise ValueError(f"n must have shape (..., L) with L >= 2 media, got shape {jnp.shape(n)}")
     L = jnp.shape(n)[-1]
@@ -359,12 +355,6 @@ def _valid(n, d, wavelength, cos_i):
     ok &= jnp.all((d >= 0) & (d < jnp.inf), axis=-1)
     ok &= (wavelength > 0) & (wavelength < jnp.inf) & (jnp.abs(cos_i) < jnp.inf)
     return ok
-
-
-def _kz_outer(q):
-    """k_z of a semi-infinite medium (or an incoherent layer): decaying branch, with the
-    double-where square root (finite derivative at its critical angle, q = 0)."""
-    return _decaying(sqrt_where(q, q != 0))
 
 
 def stack(n, d, wavelength, cos_i, *, incoherent=()) -> StackResult:
@@ -415,7 +405,7 @@ def stack(n, d, wavelength, cos_i, *, incoherent=()) -> StackResult:
     nn = first(n)
     a = first((2 * jnp.pi / wavelength)[..., None] * d).astype(cdt)  # inner layers only: a[j - 1]
     kz_sq = lambda nj: _kt_squared(ki, n0c, nj)[0]  # k_z^2 formed as in `fresnel`
-    kz_exit = _kz_outer(kz_sq(nn[L - 1]))
+    kz_exit = decaying_sqrt(kz_sq(nn[L - 1]))
     if not inc:
         s, p = _group(ki, n0c, kz_exit, nn[L - 1], nn[1:L - 1], a, kz_sq, real_incident=True)
         return _finish(valid, s.R, p.R, s.T, p.T, list(s.A), list(p.A), (s.r, p.r, s.t, p.t), p.r * jnp.conj(s.r))
@@ -433,7 +423,7 @@ def _finish(valid, Rs, Rp, Ts, Tp, As, Ap, amps, rp_rs):
 def _incoherent(valid, bounds, ki, nn, a, kz_sq):
     """Coherent groups between the incoherent layers `bounds[1:-1]` (indices among all media),
     summed in intensity. Arrays have the media (a: inner layers) on the leading axis."""
-    kz = {j: _kz_outer(kz_sq(nn[j])) for j in bounds[1:]}
+    kz = {j: decaying_sqrt(kz_sq(nn[j])) for j in bounds[1:]}
     kz[0] = ki
     N = len(bounds)
     fwd, bwd = [], []

@@ -20,7 +20,6 @@ def mp_stack(pol, n, d, wl, theta, dps=40, exact=False):
     has no overflow). Returns (r, t, R, T) in tmm's conventions, as Python numbers, or as mpmath
     numbers with `exact` (for `mp.diff`). Independent of the kernel."""
     with mp.workdps(dps):
-        n = [x if isinstance(x, (mp.mpc, mp.mpf)) else mp.mpc(x) for x in n]
         n = [mp.mpc(x) for x in n]
         s2 = (n[0] * mp.sin(theta if isinstance(theta, mp.mpf) else mp.mpf(theta))) ** 2
         kz = []
