@@ -13,6 +13,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import _validate as V
 from ._fresnel import _kt_squared, _own_loop, _positive_finite, _powers, _schlick_from_r0, _terms, _valid_index, materialize
@@ -185,29 +186,45 @@ def interface(i, n, eta1, eta2, *, spec: InterfaceSpec = DEFAULT_SPEC) -> Intera
 
 # ---- the material-level form -----------------------------------------------------------------
 
-MATERIAL_KINDS = ("mirror", "dielectric", "conductor", "thin_dielectric")
+MATERIAL_KINDS = ("mirror", "dielectric", "conductor", "thin_dielectric", "coated_dielectric", "coated_conductor")
+COATED_KINDS = ("coated_dielectric", "coated_conductor")
 
 
 class SceneSpec(NamedTuple):
     """The kinds of material a scene contains (static). The compiled kernel has branches for these
     kinds only.
 
-    **Fields:** `kinds`: a tuple among `"mirror"` (R = 1), `"dielectric"` (exact Fresnel, refraction
-    with TIR), `"conductor"` (complex index, R from the exact formulas, no transmission),
-    `"thin_dielectric"` (a thin sheet: incoherent sum of the multiple internal reflections,
-    `R' = 2R / (1 + R)`, transmitted ray continues undeviated); `fresnel` and `method` as in
-    `InterfaceSpec` for the dielectric branch; `check_inputs`.
+    **Fields:**
+
+    - `kinds`: a tuple among `"mirror"` (R = 1), `"dielectric"` (exact Fresnel, refraction with
+      TIR), `"conductor"` (complex index, R from the exact formulas, no transmission),
+      `"thin_dielectric"` (a thin sheet: incoherent sum of the multiple internal reflections,
+      `R' = 2R / (1 + R)`, transmitted ray continues undeviated), `"coated_dielectric"` and
+      `"coated_conductor"` (the same with a thin film on the surface: `R` and `T` are those of the
+      coherent three-medium stack `eta1 | film | eta2` from `stack`, per wavelength: thin-film
+      interference, the colours of soap films and oil slicks; directions as without the film,
+      since a film with parallel faces does not change them).
+    - `wavelengths`: static tuple of vacuum wavelengths, in the unit of the film thickness. When
+      given, `R` and `T` of every kind have a trailing spectral axis of this length (an
+      uncoated kind repeats its value: indices are taken as non-dispersive); the coated kinds
+      need it. For an RGB renderer, three wavelengths standing for its primaries (for example
+      `(630.0, 532.0, 465.0)` nm) give a per-channel reflectance; integrating a finer spectrum
+      against colour-matching functions gives the colour itself (notebook 06).
+    - `fresnel` and `method` as in `InterfaceSpec` for the dielectric branch; `check_inputs`.
     """
 
     kinds: tuple = ("dielectric",)
     fresnel: str = "exact"
     method: str = "degreve"
     check_inputs: bool = True
+    wavelengths: tuple = ()
 
 
 class Hit(NamedTuple):
     """Per-hit result of `scene_interface`: reflected and transmitted directions, the energy
-    fractions R (reflected) and T (transmitted; 0 for mirrors and conductors) and the TIR mask."""
+    fractions R (reflected) and T (transmitted; 0 for mirrors and conductors) and the TIR mask.
+    With `SceneSpec.wavelengths`, `R` and `T` have a trailing spectral axis; under a coating
+    `R + T < 1` where the film absorbs."""
 
     r: jax.Array
     t: jax.Array
@@ -216,20 +233,46 @@ class Hit(NamedTuple):
     tir: jax.Array
 
 
-def scene_interface(i, n, kind, eta1, eta2, *, scene: SceneSpec = SceneSpec()) -> Hit:
+def scene_interface(i, n, kind, eta1, eta2, *, scene: SceneSpec = SceneSpec(), film_eta=None,
+                    film_d=None) -> Hit:
     r"""The interface at each hit of a scene with several kinds of material.
 
     **Arguments:** `i`, `n` `(..., 3)`; `kind` `(...)` integer index into `scene.kinds` per hit;
     `eta1` real `(...)`; `eta2` `(...)` (complex for conductors, its real part used for
-    dielectrics); `scene` a `SceneSpec`.
+    dielectrics); `scene` a `SceneSpec`. With coated kinds: `film_eta` `(...)` the film's index
+    (real or complex `n + ik`) and `film_d` `(...)` its thickness (same unit as
+    `scene.wavelengths`), per hit; for a per-material film, index a table by `kind`
+    (`film_eta=table[kind]`).
 
     **Returns:** a `Hit`. Each present kind is evaluated and selected by `kind`; kinds not in the
     scene are not compiled at all. Hits whose `kind` is out of range get NaN.
+
+    **Edge cases:** a coated dielectric under TIR at its substrate has `T = 0` and `R = 1` minus
+    what the film absorbs; gradients with respect to the film's index and thickness are those of
+    `stack` (finite everywhere).
     """
     kinds = tuple(scene.kinds)
     bad = [k for k in kinds if k not in MATERIAL_KINDS]
     if bad or not kinds:
         raise ValueError(f"scene kinds must be a non-empty tuple among {MATERIAL_KINDS}, got {kinds}")
+    wls = tuple(float(w) for w in scene.wavelengths)
+    coated = [k for k in kinds if k in COATED_KINDS]
+    if coated and not wls:
+        raise ValueError(f"the coated kinds {coated} need SceneSpec.wavelengths (the wavelengths to evaluate)")
+    if coated and (film_eta is None or film_d is None):
+        raise ValueError(f"the coated kinds {coated} need film_eta and film_d (the film's index and thickness per hit)")
+    if not coated and (film_eta is not None or film_d is not None):
+        raise ValueError("film_eta and film_d were given but the scene has no coated kind "
+                         f"{COATED_KINDS}: add one to SceneSpec.kinds")
+    if any(not (w > 0 and w < float("inf")) for w in wls):
+        raise ValueError(f"SceneSpec.wavelengths must be finite and > 0, got {scene.wavelengths}")
+    if coated:
+        for name, x, bad, what in (("film_d", film_d, lambda v: ~(np.isfinite(v) & (v >= 0)), "finite and >= 0"),
+                                   ("film_eta", film_eta, lambda v: ~((np.real(v) > 0) & (np.imag(v) >= 0)),
+                                    "real part > 0 and k >= 0")):
+            if not isinstance(x, jax.core.Tracer) and np.any(bad(np.asarray(x))):
+                idx = tuple(int(j) for j in np.argwhere(np.atleast_1d(bad(np.asarray(x))))[0])
+                raise ValueError(f"{name}{list(idx)} = {np.atleast_1d(np.asarray(x))[idx].item()!r}: must be {what}")
     kind = jnp.asarray(kind)
     if not jnp.issubdtype(kind.dtype, jnp.integer):
         raise ValueError(f"kind must be an integer array (an index into scene.kinds), got dtype {kind.dtype}")
@@ -251,11 +294,24 @@ def scene_interface(i, n, kind, eta1, eta2, *, scene: SceneSpec = SceneSpec()) -
             x = interface(i, n, eta1, e2r, spec=InterfaceSpec(("r", "t", "tir", "R", "T"), scene.fresnel, scene.method,
                                                               check_inputs=scene.check_inputs))
             results.append(Hit(x.r, x.t, x.R, x.T, x.tir))
-        else:  # thin dielectric sheet: both faces, light bouncing inside adds incoherently
+        elif k == "thin_dielectric":  # thin sheet: both faces, light bouncing inside adds incoherently
             x = interface(i, n, eta1, e2r, spec=InterfaceSpec(("r", "R"), scene.fresnel, scene.method,
                                                               tir_possible=False, check_inputs=scene.check_inputs))
             Rt = 2 * x.R / (1 + x.R)
             results.append(Hit(x.r, jnp.broadcast_to(i, x.r.shape).astype(dt), Rt, 1 - Rt, jnp.zeros(Rt.shape, bool)))
+        elif k == "coated_dielectric":
+            x = interface(i, n, eta1, e2r, spec=InterfaceSpec(("r", "t", "tir"), scene.fresnel, scene.method,
+                                                              check_inputs=scene.check_inputs))
+            R, T = _film(i, n, eta1, e2r, film_eta, film_d, wls, dt)
+            results.append(Hit(x.r, x.t, R, T, x.tir))
+        else:  # coated conductor
+            e2k = e2c if jnp.iscomplexobj(e2c) else e2c.astype(V.complex_dtype(dt))
+            r = interface(i, n, eta1, e2r, spec=InterfaceSpec(outputs=("r",), check_inputs=scene.check_inputs)).r
+            R, _ = _film(i, n, eta1, e2k, film_eta, film_d, wls, dt)
+            results.append(Hit(r, r, R, jnp.zeros_like(R), jnp.zeros(r.shape[:-1], bool)))
+    if wls:  # every kind spectral: uncoated ones repeat their (non-dispersive) value
+        rep = lambda x: jnp.broadcast_to(x[..., None], x.shape + (len(wls),))
+        results = [h if k in COATED_KINDS else h._replace(R=rep(h.R), T=rep(h.T)) for k, h in zip(kinds, results)]
     if len(results) == 1:
         out = results[0]
         inside = kind == 0
@@ -265,6 +321,24 @@ def scene_interface(i, n, kind, eta1, eta2, *, scene: SceneSpec = SceneSpec()) -
         inside = (kind >= 0) & (kind < len(kinds))
     nan = lambda v: jnp.where(inside[..., None] if v.ndim > inside.ndim else inside, v, jnp.nan)
     return Hit(nan(out.r), nan(out.t), nan(out.R), nan(out.T), out.tir & inside)
+
+
+def _film(i, n, eta1, eta2, film_eta, film_d, wls, dt):
+    """(R, T), shape (..., W): unpolarized, of the stack eta1 | film | eta2 at the hit's angle."""
+    from ._stack import stack
+
+    c = jnp.abs(jnp.sum(jnp.asarray(i, dt) * jnp.asarray(n, dt), -1))
+    c = c / jnp.sqrt(jnp.sum(jnp.asarray(i, dt) ** 2, -1) * jnp.sum(jnp.asarray(n, dt) ** 2, -1))
+    c = jnp.minimum(c, 1)
+    cdt = V.complex_dtype(dt)
+    batch = c.shape
+    e1 = jnp.broadcast_to(jnp.asarray(eta1, dt), batch).astype(cdt)
+    ef = jnp.broadcast_to(jnp.asarray(film_eta).astype(cdt), batch)
+    e2 = jnp.broadcast_to(jnp.asarray(eta2).astype(cdt), batch)
+    nstack = jnp.stack([e1, ef, e2], -1)[..., None, :]  # (..., 1, 3): one stack per hit
+    d = jnp.broadcast_to(jnp.asarray(film_d, dt), batch)[..., None, None]
+    res = stack(nstack, d, jnp.asarray(wls, dt), c[..., None])
+    return res.R, res.T
 
 
 def _select(idx, xs):

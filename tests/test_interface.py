@@ -152,3 +152,57 @@ def test_outputs_agree_on_tir_within_ulps_of_the_critical_angle(dtype):
     sin_t = np.linalg.norm(np.cross(t, n64), axis=1)
     snell = np.abs(e1 * sin_i - e2 * sin_t) / np.maximum(e1, e2)
     assert np.max(snell[~tir]) < 16 * eps
+
+
+def test_scene_interface_coated_kinds_against_tmm():
+    """Coated dielectric and conductor: R and T per wavelength are those of the three-medium
+    stack (checked against tmm, unpolarized), directions and the TIR mask as without the film,
+    uncoated kinds repeat their value over the spectral axis."""
+    import tmm
+
+    rng = np.random.default_rng(4)
+    N = 12
+    i = rng.normal(size=(N, 3))
+    i /= np.linalg.norm(i, axis=-1, keepdims=True)
+    n = np.tile([0.0, 0.0, 1.0], (N, 1))
+    kind = np.arange(N) % 3
+    kinds = ("dielectric", "coated_dielectric", "coated_conductor")
+    wls = (450.0, 550.0, 650.0)
+    eta1 = np.where(np.arange(N) % 2 == 0, 1.0, 1.6)  # some hits from the denser side: TIR
+    eta2 = np.where(kind == 2, 0.2 + 3.0j, 1.2 + 0j)
+    film_eta = rng.uniform(1.3, 2.4, N) + 1j * rng.uniform(0, 0.05, N)
+    film_d = rng.uniform(0, 400, N)
+    scene = jo.SceneSpec(kinds=kinds, wavelengths=wls)
+    h = jax.jit(lambda *a: jo.scene_interface(*a, scene=scene, film_eta=film_eta, film_d=film_d))(i, n, kind, eta1, eta2)
+    assert h.R.shape == (N, 3) and h.T.shape == (N, 3)
+    plain = jo.scene_interface(i, n, kind, eta1, eta2.real, scene=jo.SceneSpec(kinds=("dielectric",) * 3))
+    for k in range(N):
+        th = np.arccos(abs(i[k] @ n[k]))
+        if kind[k] == 0:
+            np.testing.assert_allclose(np.asarray(h.R[k]), float(plain.R[k]), rtol=1e-15)
+            continue
+        for w, wl in enumerate(wls):
+            args = ([eta1[k], film_eta[k], eta2[k]], [np.inf, film_d[k], np.inf], th, wl)
+            R = 0.5 * (tmm.coh_tmm("s", *args)["R"] + tmm.coh_tmm("p", *args)["R"])
+            T = 0.5 * (tmm.coh_tmm("s", *args)["T"] + tmm.coh_tmm("p", *args)["T"])
+            np.testing.assert_allclose(float(h.R[k, w]), R, atol=1e-12)
+            np.testing.assert_allclose(float(h.T[k, w]), 0.0 if kind[k] == 2 else T, atol=1e-12)
+        if kind[k] == 1:  # directions and TIR of the bare dielectric
+            np.testing.assert_allclose(np.asarray(h.t[k]), np.asarray(plain.t[k]), atol=1e-15)
+            assert bool(h.tir[k]) == bool(plain.tir[k])
+    assert np.any(np.asarray(h.tir))
+    g = jax.grad(lambda fd: jo.scene_interface(i, n, kind, eta1, eta2, scene=scene, film_eta=film_eta, film_d=fd).R.sum())(film_d)
+    assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_scene_interface_coating_errors():
+    i, n = np.array([[0.0, 0.6, -0.8]]), np.array([[0.0, 0.0, 1.0]])
+    coated = jo.SceneSpec(kinds=("coated_dielectric",), wavelengths=(550.0,))
+    with pytest.raises(ValueError, match="need SceneSpec.wavelengths"):
+        jo.scene_interface(i, n, np.array([0]), 1.0, 1.5, scene=coated._replace(wavelengths=()), film_eta=1.38, film_d=100.0)
+    with pytest.raises(ValueError, match="need film_eta and film_d"):
+        jo.scene_interface(i, n, np.array([0]), 1.0, 1.5, scene=coated)
+    with pytest.raises(ValueError, match="no coated kind"):
+        jo.scene_interface(i, n, np.array([0]), 1.0, 1.5, film_eta=1.38, film_d=100.0)
+    with pytest.raises(ValueError, match=r"film_d\[0\] = -1.0"):
+        jo.scene_interface(i, n, np.array([0]), 1.0, 1.5, scene=coated, film_eta=1.38, film_d=np.array([-1.0]))
