@@ -173,3 +173,38 @@ def scalar_ref(name):
 def bound(name, c, a, b, dtype):
     """(reference, backward bound) at one point, as in `backward_bound`."""
     return backward_bound(scalar_ref(name), (c, a, b), dtype, specials=fresnel_specials, nonneg=(1, 2))
+
+
+def stack_ref(pol, n, d, wl, theta, dps=40, exact=False):
+    """A multilayer by plain characteristic matrices at `dps` digits (no scaling: mpmath's exponent
+    range has no overflow). `n` the L indices, `d` the L-2 inner thicknesses, `wl` the vacuum
+    wavelength, `theta` the angle of incidence in medium 0 (a float or an mpf). Returns
+    (r, t, R, T) in tmm's conventions, as Python numbers, or as mpmath numbers with `exact` (for
+    `mp.diff`). Independent of `jaxoptics.stack` (no shared code)."""
+    with mp.workdps(dps):
+        n = [mp.mpc(x) for x in n]
+        s2 = (n[0] * mp.sin(theta if isinstance(theta, mp.mpf) else mp.mpf(theta))) ** 2
+        kz = []
+        for x in n:
+            k = mp.sqrt(x * x - s2)
+            kz.append(-k if mp.im(k) < 0 or (mp.im(k) == 0 and mp.re(k) < 0) else k)
+        eta = [k if pol == "s" else x * x / k for k, x in zip(kz, n)]
+        M = mp.eye(2)
+        for j in range(1, len(n) - 1):
+            dl = 2 * mp.pi * mp.mpf(d[j - 1]) / mp.mpf(wl) * kz[j]  # mpf() keeps an mpf as it is
+            M = M * mp.matrix([[mp.cos(dl), -1j * mp.sin(dl) / eta[j]], [-1j * eta[j] * mp.sin(dl), mp.cos(dl)]])
+        v = M * mp.matrix([[1], [eta[-1]]])
+        B, C = v[0], v[1]
+        r = (eta[0] * B - C) / (eta[0] * B + C)
+        if pol == "p":
+            r = -r  # tmm's sign of r_p (r_p = -r_s at normal incidence)
+        Ex = 2 * eta[0] / (eta[0] * B + C)  # exit tangential E per unit incident tangential E
+        if pol == "s":
+            t = Ex
+        else:  # whole in-plane field: E_p = E_x n / k_z on both sides
+            t = Ex * (n[-1] / kz[-1]) / (n[0] / kz[0])
+        R = abs(r) ** 2
+        T = mp.re(Ex * mp.conj(Ex * eta[-1])) / mp.re(eta[0])
+        if exact:
+            return r, t, R, T
+        return complex(r), complex(t), float(R), float(T)

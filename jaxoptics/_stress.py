@@ -486,14 +486,19 @@ def run(*, n=1_000_000, out_dir="stress_out", mp_samples=2000, mitsuba=True, qui
     out.mkdir(parents=True, exist_ok=True)
     n_random = max(int(n * 0.8), 1000)  # the structured inputs bring the total above n
     report = {"machine": machine_description(), "n_requested": n, "rows": []}
-    total = 2 * (len(_scalar_kernels()) + 5) + (1 if mitsuba else 0)
+    from ._stress_stack import CATEGORIES, stack_stress_table, stress_stack
+
+    total = 2 * (len(_scalar_kernels()) + 5) + (1 if mitsuba else 0) + len(CATEGORIES)
     with tqdm(total=total, desc="stress", unit="kernel", disable=quiet) as bar:
         for dtype in (np.float32, np.float64):
             report["rows"] += stress_scalar(dtype, n_random, bar, mp_samples=mp_samples)
             report["rows"] += stress_vector(dtype, n_random, bar, mp_samples=max(mp_samples // 5, 50))
+        report["stack"] = stress_stack(n_points=max(n // 10, 4000), mp_samples=max(mp_samples // 10, 40), progress=bar)
         if mitsuba:
             report["mitsuba"] = mitsuba_comparison(progress=bar)
-    md = [f"Machine: {report['machine']}", "", table(report["rows"])]
+    md = [f"Machine: {report['machine']}", "", table(report["rows"]), "",
+          "Thin-film stacks (`stack`, 3 to 12 media; float32 against float64 on the same inputs):", "",
+          stack_stress_table(report["stack"])]
     if "mitsuba" in report:
         m = report["mitsuba"]
         if "skipped" in m:

@@ -11,41 +11,9 @@ import pytest
 import tmm
 
 import jaxoptics as jo
+from helpers import stack_ref
 
 # ---- oracles -------------------------------------------------------------------------------------
-
-
-def mp_stack(pol, n, d, wl, theta, dps=40, exact=False):
-    """Plain characteristic-matrix multilayer at `dps` digits (no scaling: mpmath's exponent range
-    has no overflow). Returns (r, t, R, T) in tmm's conventions, as Python numbers, or as mpmath
-    numbers with `exact` (for `mp.diff`). Independent of the kernel."""
-    with mp.workdps(dps):
-        n = [mp.mpc(x) for x in n]
-        s2 = (n[0] * mp.sin(theta if isinstance(theta, mp.mpf) else mp.mpf(theta))) ** 2
-        kz = []
-        for x in n:
-            k = mp.sqrt(x * x - s2)
-            kz.append(-k if mp.im(k) < 0 or (mp.im(k) == 0 and mp.re(k) < 0) else k)
-        eta = [k if pol == "s" else x * x / k for k, x in zip(kz, n)]
-        M = mp.eye(2)
-        for j in range(1, len(n) - 1):
-            dl = 2 * mp.pi * mp.mpf(d[j - 1]) / mp.mpf(wl) * kz[j]  # mpf() keeps an mpf as it is
-            M = M * mp.matrix([[mp.cos(dl), -1j * mp.sin(dl) / eta[j]], [-1j * eta[j] * mp.sin(dl), mp.cos(dl)]])
-        v = M * mp.matrix([[1], [eta[-1]]])
-        B, C = v[0], v[1]
-        r = (eta[0] * B - C) / (eta[0] * B + C)
-        if pol == "p":
-            r = -r  # tmm's sign of r_p (r_p = -r_s at normal incidence)
-        Ex = 2 * eta[0] / (eta[0] * B + C)  # exit tangential E per unit incident tangential E
-        if pol == "s":
-            t = Ex
-        else:  # whole in-plane field: E_p = E_x n / k_z on both sides
-            t = Ex * (n[-1] / kz[-1]) / (n[0] / kz[0])
-        R = abs(r) ** 2
-        T = mp.re(Ex * mp.conj(Ex * eta[-1])) / mp.re(eta[0])
-        if exact:
-            return r, t, R, T
-        return complex(r), complex(t), float(R), float(T)
 
 
 def _tmm_case(n, d, wl, theta, inc):
@@ -162,7 +130,7 @@ def test_mpmath_oracle_agrees_with_tmm():
     for k in range(10):
         for pol in "sp":
             ref = tmm.coh_tmm(pol, n[k], [np.inf] + list(d[k]) + [np.inf], theta[k], wl[k])
-            r, t, R, T = mp_stack(pol, n[k], d[k], wl[k], theta[k])
+            r, t, R, T = stack_ref(pol, n[k], d[k], wl[k], theta[k])
             assert abs(r - ref["r"]) < 1e-12 and abs(t - ref["t"]) < 1e-12 * max(1, abs(t))
             assert abs(R - ref["R"]) < 1e-12 and abs(T - ref["T"]) < 1e-12
 
@@ -245,8 +213,8 @@ def test_ellipsometry_conventions():
     assert np.all(np.asarray(e.delta) > -np.pi)
     # SiO2 (1.46) 100 nm on Si (3.88 + 0.02i) at 70 degrees, 633 nm: psi/delta from the oracle
     n, d = np.array([1.0, 1.46, 3.88 + 0.02j]), np.array([100.0])
-    rs = mp_stack("s", n, d, 633.0, np.deg2rad(70))[0]
-    rp = mp_stack("p", n, d, 633.0, np.deg2rad(70))[0]
+    rs = stack_ref("s", n, d, 633.0, np.deg2rad(70))[0]
+    rp = stack_ref("p", n, d, 633.0, np.deg2rad(70))[0]
     e = jo.ellipsometry(n, d, 633.0, np.cos(np.deg2rad(70)))
     np.testing.assert_allclose(float(e.psi), np.arctan(abs(rp / rs)), rtol=1e-13)
     np.testing.assert_allclose(float(e.delta), np.angle(-rp / rs), rtol=1e-13)
@@ -332,7 +300,7 @@ def test_frustrated_tir_tunnelling():
     res = jo.stack(np.array([1.5, 1.0, 1.5]), gaps[:, None], 600.0, np.cos(th))
     for k, g in enumerate(gaps):
         for pol in "sp":
-            _, _, R, T = mp_stack(pol, [1.5, 1.0, 1.5], [g], 600.0, th)
+            _, _, R, T = stack_ref(pol, [1.5, 1.0, 1.5], [g], 600.0, th)
             np.testing.assert_allclose(float(getattr(res, f"R_{pol}")[k]), R, atol=1e-14)
             np.testing.assert_allclose(float(getattr(res, f"T_{pol}")[k]), T, rtol=1e-12, atol=1e-300)
     assert float(res.T_s[0]) == pytest.approx(1.0, abs=1e-15)
@@ -386,7 +354,7 @@ def test_gradients_match_mpmath(case):
                 w = x
             else:
                 t = x
-            return mp_stack(pol, nn, dd, w, t, dps=40, exact=True)[2]
+            return stack_ref(pol, nn, dd, w, t, dps=40, exact=True)[2]
 
         with mp.workdps(40):
             for which, base in enumerate([n.real, n.imag, d, np.array([wl]), np.array([th])]):
@@ -470,3 +438,35 @@ def test_out_of_domain_inside_jit_is_nan():
     assert np.all(np.isnan(np.asarray(res.R[1:]))) and np.all(np.isnan(np.asarray(res.A_s[1:])))
     res = f(np.array([1.0, 1.5, 2.0]), np.array([[-1.0], [np.inf]]), 500.0, 0.5)
     assert np.all(np.isnan(np.asarray(res.R))) and np.all(np.isnan(np.asarray(jnp.abs(res.r_s))))
+
+
+def test_jitted_float32_inner_layer_at_its_critical_angle():
+    """Regression: under jit, XLA recomputed k_z^2 of a layer in several fused loops with different
+    FMA contraction; where it is near 0 (the layer at its critical angle) the copies fell on both
+    sides of 0, and the branch of the written-out root disagreed between them (R = 0.22 instead of
+    1 for a lossless stack with the exit under TIR). Lossless, exit under TIR: R = 1 exactly."""
+    rng = np.random.default_rng(7)
+    K = 2000
+    n0 = rng.uniform(1.5, 2.5, K)
+    n1 = rng.uniform(1.0, n0 - 0.05)
+    theta = np.arcsin(n1 / n0)
+    n_exit = rng.uniform(0.5, 0.99, K) * n1  # below n0 sin(theta): TIR into the exit medium
+    n = np.stack([n0, n0 * np.sin(theta), n_exit], -1).astype(np.complex64)
+    d = rng.uniform(0, 300, (K, 1)).astype(np.float32)
+    wl = rng.uniform(300, 1200, K).astype(np.float32)
+    res = jax.jit(jo.stack)(n, d, wl, np.cos(theta).astype(np.float32))
+    np.testing.assert_allclose(np.asarray(res.R_s), 1.0, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(res.R_p), 1.0, atol=1e-5)
+
+
+def test_float32_absorption_in_front_of_a_thick_absorber():
+    """Regression: the attenuation in front of each interface was formed as (total - suffix) of the
+    layers' attenuations; with 10^5 nepers in a thick absorber behind a thin one, that difference
+    lost about 0.02 nepers in float32 (2.7e-3 error in the thin layer's absorption). It is a prefix
+    sum now: float32 agrees with float64 on the same inputs to float32 rounding."""
+    n = np.array([1.0, 2.0 + 0.3j, 2.2 + 0.5j, 1.5], np.complex64)
+    d = np.stack([np.linspace(5.0, 120.0, 50), np.geomspace(1e5, 3e7, 50)], -1).astype(np.float32)
+    wl, c = np.float32(600.0), np.float32(0.8)
+    a32 = jo.stack(n, d, wl, c).A
+    a64 = jo.stack(n.astype(np.complex128), d.astype(np.float64), np.float64(wl), np.float64(c)).A
+    np.testing.assert_allclose(np.asarray(a32, np.float64), np.asarray(a64), atol=2e-6)

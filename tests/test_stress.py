@@ -51,3 +51,18 @@ def test_invariants(report):
             assert r["worst_snell_residual"] < 16 * eps, r
         if r["kernel"] == "fresnel_rt.T":
             assert r["worst_R_plus_T_minus_1"] <= 2 * eps, r
+
+
+def test_stack_section(report):
+    """Thin-film stacks: no NaN/inf values or gradients in any category, float64 within 1e-13 of
+    40-digit mpmath, energy balanced to rounding, float32 within a few float32 roundings of what a
+    2-ulp change of its inputs causes (README, "Stress test")."""
+    rows = {r["category"]: r for r in report["stack"]}
+    assert set(rows) == {"random", "thick absorbers", "TIR and frustrated TIR", "inner layer at its critical angle",
+                         "grazing incidence", "zero thicknesses", "index-matched layers", "metals"}
+    for r in rows.values():
+        assert r["n"] >= 100 and r["mp_compared"] >= 8, r
+        assert r["nan_inf_values"] == 0 and r["nan_inf_grad_rev"] == 0 and r["nan_inf_grad_fwd"] == 0, r
+        assert r["mp_max_abs_diff"] < 1e-13, r
+        assert r["energy_f64"] < 1e-13 and r["energy_f32"] < 2e-6, r
+        assert r["f32_max_excess_R"] < 1e-5 and r["f32_max_abs_err_A"] < 1e-4, r
