@@ -113,6 +113,7 @@ def _abs_cos(cos_i):
     return jnp.where(cos_i < 0, -cos_i, cos_i)
 
 
+@jax.custom_jvp
 def materialize(x):
     """`x`, computed once and stored, for every consumer to read (on XLA's CPU backend).
 
@@ -126,6 +127,14 @@ def materialize(x):
     division per element.
     """
     return x / jnp.where(jnp.isnan(x), 2, 1).astype(x.dtype)
+
+
+@materialize.defjvp
+def _materialize_jvp(primals, tangents):
+    # the divisor is 1 wherever x is a number: the tangent passes through unchanged (no division
+    # in the forward-mode or the transposed reverse-mode program)
+    (x,), (dx,) = primals, tangents
+    return materialize(x), dx
 
 
 def sqrt_where(x, mask):

@@ -470,3 +470,72 @@ def test_float32_absorption_in_front_of_a_thick_absorber():
     a32 = jo.stack(n, d, wl, c).A
     a64 = jo.stack(n.astype(np.complex128), d.astype(np.float64), np.float64(wl), np.float64(c)).A
     np.testing.assert_allclose(np.asarray(a32, np.float64), np.asarray(a64), atol=2e-6)
+
+
+# ---- large batches: blocks -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("inc", [(), (1,)])
+def test_large_batches_in_blocks_agree_with_tmm(monkeypatch, inc):
+    """Batches larger than `_BLOCK` points run in blocks (a `lax.map` over them). With a block of
+    7 points, a (samples x points) batch of 45 (the last block partial) whose indices and
+    thicknesses vary per sample and wavelength and angle per point (inputs broadcast on different
+    axes) agrees with tmm point by point, and its gradients equal those of the batch in one
+    block."""
+    import jaxoptics._stack as S
+
+    rng = np.random.default_rng(11)
+    Sn, W, L = 5, 9, 5
+    n, d, _, _ = _random_stacks(rng, Sn, L)
+    if inc:
+        d[:, 1] = rng.uniform(2e3, 5e4, Sn)
+    wl = rng.uniform(300, 1200, W)
+    theta = rng.uniform(0, np.deg2rad(85), W)
+    args = (n[:, None, :], d[:, None, :], wl, np.cos(theta))
+
+    def run(block):
+        monkeypatch.setattr(S, "_BLOCK", block)
+        res = jax.jit(lambda *a: jo.stack(*a, incoherent=inc))(*args)  # a new function: traced anew
+        loss = lambda n, d, w: jnp.sum(jo.stack(n, d, w, args[3], incoherent=inc).R * jnp.linspace(0.5, 1.5, W)[None])
+        return res, jax.grad(loss, argnums=(0, 1, 2))(*args[:3])
+
+    res, grads = run(7)
+    compared = 0
+    for s in range(Sn):
+        for w in range(W):
+            ref = _tmm_case(n[s], d[s], wl[w], theta[w], inc)
+            if ref is None:
+                continue
+            compared += 1
+            for pol in "sp":
+                R, T, A, r, _ = ref[pol]
+                np.testing.assert_allclose(np.asarray(getattr(res, f"R_{pol}"))[s, w], R, atol=1e-10, rtol=0)
+                np.testing.assert_allclose(np.asarray(getattr(res, f"T_{pol}"))[s, w], T, atol=1e-10, rtol=0)
+                np.testing.assert_allclose(np.asarray(getattr(res, f"A_{pol}"))[s, w], A, atol=1e-10, rtol=0)
+                if not inc:
+                    np.testing.assert_allclose(np.asarray(getattr(res, f"r_{pol}"))[s, w], r, atol=1e-10, rtol=0)
+    assert compared >= 0.6 * Sn * W
+    _, grads_one = run(10**6)
+    for g, g1 in zip(grads, grads_one):
+        assert np.all(np.isfinite(np.asarray(g)))
+        np.testing.assert_allclose(np.asarray(g), np.asarray(g1), rtol=1e-11, atol=1e-13)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_expm1_of_the_phase_against_mpmath(dtype):
+    """The layer's exp(2 i delta) - 1 with one argument reduction (`_expm1_imag`) against mpmath:
+    a few ulps (relative to |expm1|) for decays from 0 to 100 nepers and phases from 1e-12 to 1e6
+    radians, including phases at multiples of pi/2 where the result is small."""
+    from jaxoptics._stack import _expm1_imag
+
+    rng = np.random.default_rng(3)
+    K = 3000
+    x = np.concatenate([-(10.0 ** rng.uniform(-12, 2, K)), np.zeros(200), -(10.0 ** rng.uniform(-12, -6, 200))])
+    y = np.concatenate([rng.choice([-1, 1], K) * 10.0 ** rng.uniform(-12, 6 if dtype == np.float64 else 4, K),
+                        np.pi / 2 * rng.integers(-4000, 4000, 200), np.pi / 2 * rng.integers(-100, 100, 200)])
+    x, y = x.astype(dtype), y.astype(dtype)
+    got = np.asarray(jax.jit(_expm1_imag)(jnp.asarray(x), jnp.asarray(y)))
+    with mp.workdps(40):
+        ref = np.array([complex(mp.expm1(mp.mpc(float(a), float(b)))) for a, b in zip(x, y)])
+    err = np.abs(got - ref) / np.abs(ref) / np.finfo(dtype).eps
+    assert err.max() < 4, (err.max(), x[np.argmax(err)], y[np.argmax(err)])
