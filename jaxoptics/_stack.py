@@ -247,9 +247,11 @@ def _layer(q, a, kz):
     module docstring (point 3)."""
     z = 2j * a * kz
     e = _expm1_imag(jnp.real(z), jnp.imag(z))
-    # stored once for the four products of the step that read them (XLA would otherwise
-    # recompute the argument reduction and polynomials in each of their fused loops)
-    return _materialize_complex(1 + 0.5 * e), _materialize_complex(a * _exprel_from(e, z))
+    # stored once for the four products of the step that read c and s (XLA would otherwise
+    # recompute the argument reduction and the polynomials in each of their fused loops); c and s
+    # themselves are a few multiplications from it, cheaper to recompute than to store
+    e = _materialize_complex(e)
+    return 1 + 0.5 * e, a * _exprel_from(e, z)
 
 
 @_layer.defjvp
@@ -302,7 +304,11 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
         def step(carry, lay):
             (Es, Hs), (Ep, Hp), S = carry
             nj, dj = lay
-            nj, nsq, inv_nsq = nj
+            # n^2 and 1/n^2 here, from the layer's index: (un-broadcast, these are a few scalar
+            # operations; with them as separate scan inputs the backward pass would sum three
+            # cotangents over the batch for each layer instead of one)
+            nsq = nj * nj
+            inv_nsq = 1 / nsq
             # k_z^2 once and stored (`materialize`): XLA otherwise recomputes it in each fused loop
             # that reads it, contracting multiply-adds differently, and where it is near 0 (the layer
             # at its critical angle) the copies fall on both sides of 0 and the root's branch
@@ -320,7 +326,7 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
             return (ws, wp, S + phase), (_flux(*ws), _flux(*wp), jnp.imag(phase))
 
         (w0s, w0p, S_all), (fs, fp, im_phase) = jax.lax.scan(jax.checkpoint(step), (v_s, v_p, jnp.zeros_like(kze)),
-                                                          ((nn, nn * nn, 1 / (nn * nn)), dd), reverse=True)
+                                                          (nn, dd), reverse=True)
         # the product of the scale factors, and |the product in front of interface k|^2 from the
         # prefix sums of the attenuations (not as total minus suffix: with 1e5 nepers in a thick
         # absorber behind, that difference loses everything in float32)
