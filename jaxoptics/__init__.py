@@ -22,30 +22,31 @@ from ._stack import StackResult as StackResult
 from ._stack import ellipsometry as ellipsometry
 from ._stack import stack as stack
 
-__version__ = "0.1.0"
-from ._fit import FitResult as FitResult
-from ._fit import OneColumnLeastSquares as OneColumnLeastSquares
-from ._fit import fit_eta as fit_eta
-from ._fit import synthetic_reflectance as synthetic_reflectance
-from ._materials import MATERIALS as MATERIALS
-from ._materials import Material as Material
-from ._materials import cauchy as cauchy
-from ._materials import material_index as material_index
-from ._materials import sellmeier as sellmeier
-from ._dispersion_fit import DispersionFit as DispersionFit
-from ._dispersion_fit import fit_dispersion as fit_dispersion
 from ._data import Curve as Curve
 from ._data import ReflectanceData as ReflectanceData
 from ._data import example_path as example_path
 from ._data import load_reflectance as load_reflectance
-from ._shard import batch_mesh as batch_mesh
-from ._shard import fit_eta_sharded as fit_eta_sharded
-from ._shard import shard_batch as shard_batch
-from ._shard import sharded_map as sharded_map
+from ._dispersion_fit import DispersionFit as DispersionFit
+from ._dispersion_fit import fit_dispersion as fit_dispersion
+from ._fit import fit_eta as fit_eta
+from ._fit_model import synthetic_reflectance as synthetic_reflectance
+from ._fit_result import FitResult as FitResult
+from ._fit_solver import OneColumnLeastSquares as OneColumnLeastSquares
 from ._interface import Hit as Hit
 from ._interface import Interaction as Interaction
 from ._interface import InterfaceSpec as InterfaceSpec
 from ._interface import SceneSpec as SceneSpec
 from ._interface import interface as interface
 from ._interface import scene_interface as scene_interface
+from ._materials import MATERIALS as MATERIALS
+from ._materials import Material as Material
+from ._materials import cauchy as cauchy
+from ._materials import material_index as material_index
+from ._materials import sellmeier as sellmeier
 from ._memory import keep_freed_memory as keep_freed_memory
+from ._shard import batch_mesh as batch_mesh
+from ._shard import fit_eta_sharded as fit_eta_sharded
+from ._shard import shard_batch as shard_batch
+from ._shard import sharded_map as sharded_map
+
+__version__ = "0.1.0"

@@ -144,15 +144,38 @@ def _plot_fits(fits, args, title):
     fig.savefig(args.plot, dpi=120)
 
 
+def _tools_missing() -> str | None:
+    """The name of a tool dependency that is not installed, or None."""
+    import importlib.util
+
+    for mod in ("mpmath", "tqdm", "scipy", "tmm"):
+        if importlib.util.find_spec(mod) is None:
+            return mod
+    return None
+
+
+def _need_tools(command) -> int | None:
+    missing = _tools_missing()
+    if missing:
+        print(f"{command}: needs the measuring tools' dependencies ({missing} is not installed): "
+              "pip install 'jaxoptics[tools]'", file=sys.stderr)
+        return 2
+    return None
+
+
 def _bench(args) -> int:
-    from ._bench import run
+    if (rc := _need_tools("bench")) is not None:
+        return rc
+    from .tools.bench import run
 
     run(quick=args.quick, sections=tuple(args.sections.split(",")), out_dir=args.out, mitsuba=not args.no_mitsuba)
     return 0
 
 
 def _stress(args) -> int:
-    from ._stress import run
+    if (rc := _need_tools("stress")) is not None:
+        return rc
+    from .tools.stress import run
 
     run(n=args.n, out_dir=args.out, mp_samples=args.mp_samples, mitsuba=not args.no_mitsuba)
     return 0

@@ -9,7 +9,10 @@ import numpy as np
 import optimistix as optx
 
 from . import _validate as V
-from ._fit import POLARIZATIONS, _is_concrete, _model, _tol, _warn_if_x64_off, check_curves, fit_eta
+from ._fit import _warn_if_x64_off, check_curves, fit_eta
+from ._fit_followups import _is_concrete
+from ._fit_model import POLARIZATIONS, _model
+from ._fit_solver import _tol
 from ._fresnel import materialize
 from ._materials import cauchy, sellmeier
 

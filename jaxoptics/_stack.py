@@ -90,7 +90,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _validate as V
-from ._fresnel import _abs2, _kt_squared, decaying, decaying_sqrt, materialize, sqrt_where
+from ._fresnel import _abs2, _kt_squared, decaying_sqrt, materialize, sqrt_where
 
 
 class StackResult(NamedTuple):

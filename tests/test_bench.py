@@ -3,7 +3,7 @@ benchmark, never asserted in tests: this machine is shared and noisy)."""
 
 import json
 
-from jaxoptics._bench import run
+from jaxoptics.tools.bench import run
 
 
 def test_bench_runs_and_reports_every_method(tmp_path):
@@ -51,7 +51,7 @@ def test_single_output_kernels_compile_to_one_loop():
     import jax.numpy as jnp
 
     import jaxoptics as jo
-    from jaxoptics._bench import _fusions
+    from jaxoptics.tools.bench import _fusions
 
     if jax.default_backend() != "cpu":
         return
@@ -128,7 +128,7 @@ def test_fit_bench_reports_speed_and_scipy_rows(tmp_path):
 def test_stack_bench_section(tmp_path, monkeypatch):
     """The stack section measures tmm, the NumPy baseline, the kernel and its gradient in one run,
     and the kernel agrees with the baseline (rows computing the same thing)."""
-    import jaxoptics._bench_stack as bs
+    import jaxoptics.tools.bench_stack as bs
 
     monkeypatch.setattr(bs, "points", lambda N, dtype=None, _p=bs.points: _p(4000, dtype))
     rows = bs.bench_stack(quick=True, repeats=1)

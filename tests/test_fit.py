@@ -126,7 +126,7 @@ def test_small_angle_range_branch_ambiguity_is_reported(degrees):
 def test_large_batch_in_blocks_matches_single_fits():
     """Batches larger than a block (about 2^17 points) are fitted block by block inside the one
     compiled call, the last block padded: every curve still gets its own fit."""
-    from jaxoptics._fit import _BLOCK_POINTS
+    from jaxoptics._fit_solver import _BLOCK_POINTS
 
     B = 2 * (_BLOCK_POINTS // THETA.size) + 7  # three blocks, the last one padded
     etas = jnp.linspace(1.05, 3.5, B)
@@ -389,7 +389,7 @@ def test_one_column_solver_matches_lineax_least_squares():
 def test_first_argmin_matches_numpy_argmin():
     """The start's argmin (two plain reductions instead of XLA's (value, index) reduction) agrees
     with NumPy's: first index of the minimum, ties included; NaN never chosen; all-NaN rows 0."""
-    from jaxoptics._fit import _first_argmin
+    from jaxoptics._fit_starts import _first_argmin
 
     rng = np.random.default_rng(5)
     x = rng.normal(size=(200, 48))
@@ -407,8 +407,8 @@ def test_fit_jacobian_column_matches_mpmath(pol):
     50-digit Fresnel reflectance: external and internal reflection, near normal and grazing
     incidence, and 0 under TIR; relative 1e-9 (the Jacobian sets the step and the errors)."""
     import mpmath as mp
-    from jaxoptics._fit import _model, _reflectance_d_eta2
-    from jaxoptics._mpref import fresnel_ref, mpf
+    from jaxoptics._fit_model import _model, _reflectance_d_eta2
+    from jaxoptics.tools.mpref import fresnel_ref, mpf
 
     key = {"unpolarized": None, "s": "R_s", "p": "R_p"}[pol]
 
@@ -441,8 +441,8 @@ def test_fit_model_is_accurate_in_absolute_terms(pol):
     and normal incidence, Brewster's angle, eta1 == eta2 and large contrasts both ways. Points
     within 1e-9 (in k_t^2) of the critical angle, where R has an infinite slope and both this and
     `fresnel` are limited by the rounding of the inputs, are left out."""
-    from jaxoptics._fit import _reflectance_plain
-    from jaxoptics._mpref import fresnel_ref, mpf
+    from jaxoptics._fit_model import _reflectance_plain
+    from jaxoptics.tools.mpref import fresnel_ref, mpf
 
     c = np.concatenate([[0.0, 1e-12, 1e-6, 1.0], np.cos(np.linspace(0, np.pi / 2, 41)[1:-1])])
     worst = 0.0
@@ -464,8 +464,8 @@ def test_complex_fit_model_and_jacobian_match_mpmath(pol):
     """The complex fits' one-loop model and its closed-form derivative in n and k (the solver's
     Jacobian) against the 50-digit reflectance and mpmath.diff: absolute 1e-14, relative 1e-9."""
     import mpmath as mp
-    from jaxoptics._fit import _model
-    from jaxoptics._mpref import fresnel_ref, mpf
+    from jaxoptics._fit_model import _model
+    from jaxoptics.tools.mpref import fresnel_ref, mpf
 
     def R_ref(c, a, n, k):
         d = fresnel_ref(c, a, mp.mpc(n, k))

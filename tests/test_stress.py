@@ -5,7 +5,7 @@ or infinite anywhere in the domain."""
 import numpy as np
 import pytest
 
-from jaxoptics._stress import run
+from jaxoptics.tools.stress import run
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ For every category:
   does not reflect is a ratio of two roundings);
 - the energy balance |R + T + sum(A) - 1| in both dtypes;
 - NaN/inf counts of values and of reverse- and forward-mode gradients, both dtypes;
-- float64 against a 40-digit mpmath transfer-matrix evaluation (`_mpref.stack_ref`) on a sample.
+- float64 against a 40-digit mpmath transfer-matrix evaluation (`mpref.stack_ref`) on a sample.
 """
 
 from __future__ import annotations
@@ -128,7 +128,7 @@ def _mp_diff(n, d, wl, c, res, k):
     """Max |difference| of R_s, R_p, T_s, T_p from the 40-digit mpmath evaluation, first k stacks."""
     import mpmath as mp
 
-    from ._mpref import stack_ref
+    from .mpref import stack_ref
 
     worst = 0.0
     for i in range(k):

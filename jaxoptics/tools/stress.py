@@ -233,7 +233,7 @@ def _mp_check(name, f, c, a, b, cats, dtype, samples):
     import jax
     import mpmath as mp
 
-    from . import _mpref
+    from . import mpref as _mpref
 
     rng = np.random.default_rng(5)
     structured = np.flatnonzero(cats != "random")
@@ -361,7 +361,7 @@ def stress_vector(dtype, n_random, progress=None, mp_samples=400):
 def _vector_mp(method, t, i, n, a, b, cats, dtype, samples):
     import mpmath as mp
 
-    from . import _mpref
+    from . import mpref as _mpref
 
     rng = np.random.default_rng(6)
     # a quarter at the critical angle (where the TIR decision hinges on the last ulp of cos_i; a
@@ -409,7 +409,7 @@ def mitsuba_comparison(n=200_000, progress=None):
     """Mitsuba 3's float32 `fresnel` (LLVM backend) on the hardest inputs: eta = 1.000001 within
     1e-6 of the critical angle, and its automatic derivative under TIR near grazing incidence.
     Skipped with a note when Mitsuba is not installed or its LLVM backend cannot start."""
-    from ._bench import _mitsuba
+    from .bench import _mitsuba
 
     mi, dr = _mitsuba()
     if mi is None:
@@ -480,13 +480,13 @@ def run(*, n=1_000_000, out_dir="stress_out", mp_samples=2000, mitsuba=True, qui
     from tqdm.auto import tqdm
 
     jax.config.update("jax_enable_x64", True)
-    from ._bench import machine_description
+    from .bench import machine_description
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     n_random = max(int(n * 0.8), 1000)  # the structured inputs bring the total above n
     report = {"machine": machine_description(), "n_requested": n, "rows": []}
-    from ._stress_stack import CATEGORIES, stack_stress_table, stress_stack
+    from .stress_stack import CATEGORIES, stack_stress_table, stress_stack
 
     total = 2 * (len(_scalar_kernels()) + 5) + (1 if mitsuba else 0) + len(CATEGORIES)
     with tqdm(total=total, desc="stress", unit="kernel", disable=quiet) as bar:

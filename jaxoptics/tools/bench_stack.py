@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from ._bench import timeit
+from .bench import timeit
 
 LAYERS = 10
 

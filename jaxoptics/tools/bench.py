@@ -70,7 +70,7 @@ _FIT_SNIPPET = """
 import json, sys
 import jax
 jax.config.update("jax_enable_x64", True)
-from jaxoptics._bench import bench_fit
+from jaxoptics.tools.bench import bench_fit
 class Progress:
     def update(self, n=1):
         print("@@progress", n, flush=True)
@@ -319,7 +319,7 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "devices"), out_dir
             report["fit"] = rows
             md += ["### Index fits: 90 angles per curve, float64, noise 1e-3", "", fit_table(rows), ""]
         if "stack" in sections:
-            from ._bench_stack import LAYERS, bench_stack, stack_table
+            from .bench_stack import LAYERS, bench_stack, stack_table
 
             rows = bench_stack(quick=quick, progress=bar)
             report["stack"] = rows
@@ -376,7 +376,7 @@ def _mitsuba():
 
 
 def _fresnel_reference(c, e1, e2):
-    from . import _mpref
+    from . import mpref as _mpref
 
     out = []
     for x in c:
@@ -458,7 +458,7 @@ def bench_kernels(*, quick=False, progress=None, sizes=None, mitsuba=True, repea
         th = rng.uniform(0, np.pi / 2, 300)
         iv = np.stack([np.sin(th), np.zeros_like(th), -np.cos(th)], -1)
         nz = np.array([0.0, 0.0, 1.0])
-        from . import _mpref
+        from . import mpref as _mpref
 
         ref_t = np.array([[float(v) for v in _mpref.refract_ref([_mpref.mpf(x) for x in row], [_mpref.mpf(0), _mpref.mpf(0), _mpref.mpf(1)],
                                                                 _mpref.mpf(e1), _mpref.mpf(e2))[0]] for row in iv.astype(dtype)])
@@ -598,7 +598,7 @@ def bench_limits(*, quick=False, progress=None, n=None):
                                   i[..., 1] * i[..., 2])))
     for name, f in vector_kernels:
         run_rows(name, f, False, iv)
-    from ._fresnel import _sp_rt
+    from .._fresnel import _sp_rt
 
     def shared_rt(c):  # R and T from one graph: the quotients both need feed two outputs
         R_s, R_p, T_s, T_p = _sp_rt(c, jnp.full_like(c, e1), jnp.full_like(c, e2))
