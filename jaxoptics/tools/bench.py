@@ -289,6 +289,13 @@ def fit_table(rows) -> str:
     return "\n".join(out)
 
 
+def run_stamp() -> str:
+    """The date and time of a run, UTC, for the tables the tools write."""
+    import datetime
+
+    return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+
+
 def run(*, quick=False, sections=("kernels", "fit", "stack", "devices"), out_dir="bench_out", sizes=None,
         mitsuba=True) -> dict:
     from tqdm.auto import tqdm
@@ -298,8 +305,9 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "devices"), out_dir
     jax.config.update("jax_enable_x64", True)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    report = {"machine": machine_description(), "quick": quick}
-    md = [f"Machine: {report['machine']}", ""]
+    report = {"machine": machine_description(), "quick": quick, "date": run_stamp()}
+    cmd = "python -m jaxoptics bench" + (" --quick" if quick else "") + f" --sections {','.join(sections)}"
+    md = [f"Measured by `{cmd}` on {report['date']}. Machine: {report['machine']}.", ""]
     total = 6 * ("fit" in sections) + 3 * ("devices" in sections) + 24 * ("kernels" in sections) + 3 * ("stack" in sections)
     with tqdm(total=total, desc="bench", unit="step") as bar:
         if "kernels" in sections:
@@ -309,8 +317,7 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "devices"), out_dir
             pareto_chart(rows, size, out / "pareto.png")
             md += [f"### Kernels at N = {size:,} (eta1 = 1.5, eta2 = 1: TIR included; median of repeats)", "",
                    kernels_table(rows, size), "", "### Throughput against batch size", "",
-                   scaling_table(rows, sorted({r["n"] for r in rows if r.get("n")})), "",
-                   f"Pareto chart: {out / 'pareto.png'}", ""]
+                   scaling_table(rows, sorted({r["n"] for r in rows if r.get("n")})), ""]
             lim = bench_limits(quick=quick, progress=bar, n=max(sizes) if sizes else None)
             report["limits"] = lim
             md += [f"### What bounds XLA on the CPU (float32, N = {lim[0]['n']:,})", "", limits_table(lim), ""]
@@ -334,7 +341,8 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "devices"), out_dir
     (out / "bench.md").write_text(text + "\n")
     (out / "bench.json").write_text(json.dumps(report, indent=2))
     print(text)
-    print(f"\nwritten: {out / 'bench.md'}, {out / 'bench.json'}")
+    chart = f", {out / 'pareto.png'}" if "kernels" in sections else ""
+    print(f"\nwritten: {out / 'bench.md'}, {out / 'bench.json'}{chart}")
     return report
 
 

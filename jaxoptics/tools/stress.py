@@ -480,12 +480,12 @@ def run(*, n=1_000_000, out_dir="stress_out", mp_samples=2000, mitsuba=True, qui
     from tqdm.auto import tqdm
 
     jax.config.update("jax_enable_x64", True)
-    from .bench import machine_description
+    from .bench import machine_description, run_stamp
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     n_random = max(int(n * 0.8), 1000)  # the structured inputs bring the total above n
-    report = {"machine": machine_description(), "n_requested": n, "rows": []}
+    report = {"machine": machine_description(), "n_requested": n, "rows": [], "date": run_stamp()}
     from .stress_stack import CATEGORIES, stack_stress_table, stress_stack
 
     total = 2 * (len(_scalar_kernels()) + 5) + (1 if mitsuba else 0) + len(CATEGORIES)
@@ -496,7 +496,7 @@ def run(*, n=1_000_000, out_dir="stress_out", mp_samples=2000, mitsuba=True, qui
         report["stack"] = stress_stack(n_points=max(n // 10, 4000), mp_samples=max(mp_samples // 10, 40), progress=bar)
         if mitsuba:
             report["mitsuba"] = mitsuba_comparison(progress=bar)
-    md = [f"Machine: {report['machine']}", "", table(report["rows"]), "",
+    md = [f"Measured by `python -m jaxoptics stress --n {n}` on {report['date']}. Machine: {report['machine']}.", "", table(report["rows"]), "",
           "Thin-film stacks (`stack`, 3 to 12 media; float32 against float64 on the same inputs):", "",
           stack_stress_table(report["stack"])]
     if "mitsuba" in report:
