@@ -15,7 +15,8 @@ Conventions
   medium (``Re(k_z)`` normalization, as tmm's ``T``); ``A[..., j]`` the power absorbed in inner
   layer ``j``. ``R + T + sum(A) = 1`` for each polarization, to rounding.
 * Ellipsometry: ``psi = atan(|r_p / r_s|)``, ``delta = arg(-r_p / r_s)`` in ``(-pi, pi]`` (tmm's
-  ``ellips``). See `ellipsometry` for the relation to the Azzam-Bashara convention.
+  ``ellips``). Instruments (``N = n - ik``, ``rho = r_p / r_s``) report ``Psi = psi`` and
+  ``Delta = pi - delta``; see `ellipsometry`.
 
 Formulation, and why
 --------------------
@@ -656,13 +657,15 @@ def ellipsometry(n, d, wavelength, cos_i, *, incoherent=()) -> Ellipsometry:
     `psi = atan(|r_p / r_s|)` in `[0, pi/2]` and `delta = arg(-r_p / r_s)` in `(-pi, pi]`, with
     `r_p`, `r_s` in the amplitude convention of `fresnel_amplitudes` (tmm's `ellips`).
 
-    **Conventions:** with this amplitude convention (`r_p = -r_s` at normal incidence) and time
-    dependence `exp(-i omega t)`, `-r_p / r_s` is the ratio `rho = r_p / r_s` of Azzam and Bashara
-    (Nebraska convention, where `r_p = +r_s` at normal incidence), so `delta` here is the `Delta`
-    of that convention *for time dependence* `exp(-i omega t)`: `Delta = 0` at normal incidence
-    on any sample, `Delta = pi` for a bare dielectric beyond Brewster's angle. Instruments that use
-    `exp(+i omega t)` (index `n - ik`, e.g. Woollam's and pyElli's sign of `k`) report `-delta`;
-    instruments reporting Delta in `[0, 360)` degrees report `delta mod 2 pi`.
+    **Conventions:** `delta` is tmm's `ellips` Delta: with this amplitude convention (`r_p = -r_s`
+    at normal incidence) and time dependence `exp(-i omega t)`, `delta = 0` at normal incidence on
+    any sample and `delta = pi` for a bare dielectric beyond Brewster's angle. The ellipsometry
+    literature (Azzam and Bashara's Nebraska convention, as in Fujiwara's textbook) writes the
+    index `N = n - ik` (time dependence `exp(+i omega t)`) and `rho = tan(Psi) exp(i Delta) =
+    r_p / r_s` with the same Fresnel formulas; there
+    `Psi = psi` and `Delta = pi - delta` (mod `2 pi`; a bare dielectric has `Delta = 180`
+    degrees below Brewster's angle). Tested against an independent transcription in that
+    convention.
 
     With incoherent layers the reflected light is partially depolarized: `psi =
     atan(sqrt(R_p / R_s))` and `delta = arg(-<r_p conj(r_s)>)`, the incoherent path sum

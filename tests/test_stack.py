@@ -539,3 +539,46 @@ def test_expm1_of_the_phase_against_mpmath(dtype):
         ref = np.array([complex(mp.expm1(mp.mpc(float(a), float(b)))) for a, b in zip(x, y)])
     err = np.abs(got - ref) / np.abs(ref) / np.finfo(dtype).eps
     assert err.max() < 4, (err.max(), x[np.argmax(err)], y[np.argmax(err)])
+
+
+def test_ellipsometry_in_the_instrument_convention():
+    """The conversion the docs state, against an independent transcription: the Airy formula of one
+    film in the convention of Azzam-Bashara and Fujiwara (time dependence exp(+i omega t), index
+    N = n - ik, rho = r_p / r_s with r_p = (N1 cos0 - N0 cos1) / (N1 cos0 + N0 cos1)). There
+    Delta = pi - delta (mod 2 pi) and Psi = psi; a bare dielectric has Delta = 180 degrees below
+    Brewster's angle."""
+    rng = np.random.default_rng(5)
+    K = 200
+    n1 = rng.uniform(1.3, 2.5, K) + 1j * rng.uniform(0, 0.3, K)
+    n2 = rng.uniform(1.5, 4.5, K) + 1j * rng.uniform(0, 2.0, K)
+    d = rng.uniform(0, 400, K)
+    wl = rng.uniform(300, 1000, K)
+    th = rng.uniform(0, np.deg2rad(85), K)
+    N0, N1, N2 = np.ones(K), np.conj(n1), np.conj(n2)  # n - ik
+
+    def cos_in(N):  # exp(+i omega t): the wave decays into the medium when Im(N cos) <= 0
+        c = np.sqrt(1 - (np.sin(th) / N) ** 2 + 0j)
+        return np.where((N * c).imag > 0, -c, c)
+
+    c0, c1, c2 = np.cos(th), cos_in(N1), cos_in(N2)
+    beta = 2 * np.pi * d * N1 * c1 / wl
+    rho = []
+    for pol in "sp":
+        if pol == "s":
+            r01 = (N0 * c0 - N1 * c1) / (N0 * c0 + N1 * c1)
+            r12 = (N1 * c1 - N2 * c2) / (N1 * c1 + N2 * c2)
+        else:
+            r01 = (N1 * c0 - N0 * c1) / (N1 * c0 + N0 * c1)
+            r12 = (N2 * c1 - N1 * c2) / (N2 * c1 + N1 * c2)
+        ph = np.exp(-2j * beta)
+        rho.append((r01 + r12 * ph) / (1 + r01 * r12 * ph))
+    ratio = rho[1] / rho[0]
+    Psi, Delta = np.arctan(np.abs(ratio)), np.angle(ratio)
+    e = jo.ellipsometry(np.stack([np.ones(K), n1, n2], -1), d[:, None], wl, np.cos(th))
+    np.testing.assert_allclose(np.asarray(e.psi), Psi, rtol=1e-12, atol=1e-14)
+    diff = (np.pi - np.asarray(e.delta) - Delta + np.pi) % (2 * np.pi) - np.pi
+    assert np.max(np.abs(diff)) < 1e-10
+    # a bare dielectric in that convention: 180 degrees below Brewster's angle, 0 beyond
+    b = np.arctan(1.5)
+    e = jo.ellipsometry(np.array([1.0, 1.5]), np.zeros(0), 500.0, np.cos(np.array([0.3, b - 0.1, b + 0.1])))
+    np.testing.assert_allclose((np.pi - np.asarray(e.delta)) % (2 * np.pi), [np.pi, np.pi, 0.0], atol=1e-12)
