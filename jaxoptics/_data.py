@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 from pathlib import Path
 from typing import NamedTuple
 
@@ -20,7 +21,17 @@ _NEAR_MISSES = {"angle": "angle_deg", "theta": "angle_deg", "angle_rad": "angle_
 
 
 class Curve(NamedTuple):
-    """One reflectance curve: a single polarization and wavelength, sorted by angle."""
+    """One reflectance curve: a single polarization and wavelength, sorted by angle.
+
+    **Fields:**
+
+    - `theta`: angles of incidence in radians, `(m,)`, ascending.
+    - `R`: reflectance, `(m,)`.
+    - `sigma`: standard deviation of each `R`, `(m,)`, or `None` when the file has no sigma column.
+    - `polarization`: `"s"`, `"p"` or `"unpolarized"`.
+    - `wavelength_um`: vacuum wavelength in micrometres, or `None` when the file has no wavelength.
+    - `lines`: the CSV line number of each point, `(m,)`, for error messages.
+    """
 
     theta: np.ndarray  # radians
     R: np.ndarray
@@ -31,7 +42,16 @@ class Curve(NamedTuple):
 
 
 class ReflectanceData(NamedTuple):
-    """The rows of a reflectance CSV file (see `load_reflectance`)."""
+    """The rows of a reflectance CSV file, in file order (see `load_reflectance`).
+
+    **Fields:** `path`; `angle_deg` (degrees), `R`, and the optional columns `sigma`,
+    `polarization` (strings) and `wavelength_um` (micrometres), each `(rows,)` or `None` when
+    absent; `lines`, the CSV line number of each row; `ignored_columns`, header names that were
+    not used.
+
+    **Properties and methods:** `theta` (radians); `curves()` splits the rows into `Curve`s, one
+    per (wavelength, polarization), each sorted by angle.
+    """
 
     path: str
     angle_deg: np.ndarray
@@ -67,7 +87,7 @@ def _fail(path, line, msg):
     raise ValueError(f"{path}, line {line}: {msg}")
 
 
-def load_reflectance(path, *, r_tolerance=0.05) -> ReflectanceData:
+def load_reflectance(path: str | os.PathLike, *, r_tolerance: float = 0.05) -> ReflectanceData:
     r"""Read reflectance measurements from a CSV file.
 
     The first line that is not blank and not a `#` comment is the header. Columns (any order):
@@ -146,5 +166,7 @@ def load_reflectance(path, *, r_tolerance=0.05) -> ReflectanceData:
 
 
 def example_path() -> Path:
-    """The bundled example measurement (N-BK7, see the comment lines of the file)."""
+    """Path of the bundled example measurement: reflectance of N-BK7 glass against angle, s and p
+    polarization, with the columns of `load_reflectance` (its comment lines give the source).
+    `python -m jaxoptics fit --example` fits it."""
     return Path(__file__).parent / "data" / "example_bk7.csv"

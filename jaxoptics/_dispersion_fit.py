@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jaxtyping import ArrayLike, Float
 
 from . import _validate as V
 from ._fit import _warn_if_x64_off, check_curves, fit_eta
@@ -103,8 +104,11 @@ def _solve(theta, lam, R, w, eta1, p0, *, model, terms, polarization, solver, ma
     return p, cov, se, ok, rms, chi2, sol.stats["num_steps"], cond
 
 
-def fit_dispersion(wavelength_um, theta, R, *, model="sellmeier", terms=None, eta1=1.0,
-                   polarization="unpolarized", sigma=None, init=None, solver=None, max_steps=1024) -> DispersionFit:
+def fit_dispersion(wavelength_um: Float[ArrayLike, " w"], theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "w m"], *,
+                   model: str = "sellmeier", terms: int | None = None, eta1: float = 1.0,
+                   polarization: str = "unpolarized", sigma: Float[ArrayLike, "#w #m"] | None = None,
+                   init: Float[ArrayLike, " p"] | None = None, solver: optx.AbstractLeastSquaresSolver | None = None,
+                   max_steps: int = 1024) -> DispersionFit:
     r"""Fit a dispersion law to reflectance curves measured at several wavelengths.
 
     **Arguments:**

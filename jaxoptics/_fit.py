@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jaxtyping import ArrayLike, Float, Inexact
 
 from . import _validate as V
 from ._fit_followups import _batch_shards, _fit_per_shard, _is_concrete, _solve
@@ -93,8 +94,10 @@ def _warn_if_x64_off(*xs):
         )
 
 
-def fit_eta(theta, R, *, eta1=1.0, polarization="unpolarized", sigma=None, init=None, absorbing=False,
-            solver=None, max_steps=256) -> FitResult:
+def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, eta1: float = 1.0,
+            polarization: str = "unpolarized", sigma: Float[ArrayLike, "*#batch #m"] | None = None,
+            init: Inexact[ArrayLike, "*#batch"] | None = None, absorbing: bool = False,
+            solver: optx.AbstractLeastSquaresSolver | None = None, max_steps: int = 256) -> FitResult:
     r"""Fit the index of the reflecting medium to reflectance-versus-angle data.
 
     **Arguments:**

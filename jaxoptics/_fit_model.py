@@ -8,6 +8,7 @@ import functools
 import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
+from jaxtyping import Array, ArrayLike, Float, Inexact, PRNGKeyArray
 
 from . import _validate as V
 from ._fresnel import _own_loop, fresnel, fresnel_sp
@@ -156,7 +157,9 @@ def _model_jvp(polarization, primals, tangents):
     return out, _reflectance_d_eta2(*copies, polarization) * de2
 
 
-def synthetic_reflectance(key, eta2, theta, *, eta1=1.0, polarization="unpolarized", noise=0.0):
+def synthetic_reflectance(key: PRNGKeyArray | None, eta2: Inexact[ArrayLike, "*batch"], theta: Float[ArrayLike, " m"], *,
+                          eta1: float = 1.0, polarization: str = "unpolarized",
+                          noise: float = 0.0) -> Float[Array, "*batch m"]:
     r"""Reflectance curves `R(theta)` for index `eta2`, with optional Gaussian noise.
 
     **Arguments:**

@@ -67,6 +67,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
+from jaxtyping import Array, ArrayLike, Float, Inexact
 
 from . import _validate as V
 
@@ -478,7 +479,8 @@ def _sp_rt_real_jvp(primals, tangents):
 _sp_rt_real.defjvp(_sp_rt_real_jvp, symbolic_zeros=True)
 
 
-def fresnel(cos_i, eta1, eta2):
+def fresnel(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],
+            eta2: Inexact[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
     r"""Unpolarized Fresnel reflectance ``R = (R_s + R_p) / 2`` of a smooth interface.
 
     **Arguments:**
@@ -506,7 +508,8 @@ def fresnel(cos_i, eta1, eta2):
     return 0.5 * (R_s + R_p)
 
 
-def fresnel_sp(cos_i, eta1, eta2):
+def fresnel_sp(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],
+               eta2: Inexact[ArrayLike, "*#batch"]) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
     r"""Fresnel reflectances for s (TE) and p (TM) polarization, `(R_s, R_p)`.
 
     **Arguments:** as `fresnel`; `eta2` may be complex.
@@ -522,7 +525,8 @@ def fresnel_sp(cos_i, eta1, eta2):
     return R_s, R_p
 
 
-def fresnel_rt(cos_i, eta1, eta2):
+def fresnel_rt(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],
+               eta2: Inexact[ArrayLike, "*#batch"]) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
     r"""Unpolarized reflectance and transmittance `(R, T)` computed together.
 
     `T` is the fraction of the incident power that crosses the interface (for an absorbing
@@ -543,7 +547,8 @@ def fresnel_rt(cos_i, eta1, eta2):
     return 0.5 * (R_s + R_p), 0.5 * (T_s + T_p)
 
 
-def fresnel_amplitudes(cos_i, eta1, eta2) -> FresnelAmplitudes:
+def fresnel_amplitudes(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],
+                       eta2: Inexact[ArrayLike, "*#batch"]) -> FresnelAmplitudes:
     r"""Complex Fresnel amplitude coefficients `r_s, r_p, t_s, t_p`, with phase.
 
     **Arguments:** as `fresnel`; `eta2` may be complex (metals, absorbing media).
@@ -572,7 +577,8 @@ def _schlick_from_r0(c, r0):
     return r0 + (1 - r0) * (x2 * x2 * x)
 
 
-def schlick(cos_i, eta1, eta2):
+def schlick(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],
+            eta2: Inexact[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
     r"""Schlick's approximation `R0 + (1 - R0)(1 - cos_i)^5`, `R0 = ((eta1 - eta2)/(eta1 + eta2))^2`.
 
     **Arguments:** as `fresnel`; for a complex `eta2`, `R0 = |eta1 - eta2|^2 / |eta1 + eta2|^2`.
@@ -601,7 +607,8 @@ def schlick(cos_i, eta1, eta2):
     return jnp.where(valid, _schlick_from_r0(c, r0), jnp.nan)
 
 
-def schlick_tir(cos_i, eta1, eta2):
+def schlick_tir(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],
+                eta2: Float[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
     r"""Schlick's approximation made aware of total internal reflection (de Greve 2006, eq. 30).
 
     When `eta1 > eta2` the cosine of the *transmitted* angle replaces `cos_i` (Schlick's formula is

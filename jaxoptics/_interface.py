@@ -14,10 +14,29 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Float, Inexact, Int
 
 from . import _validate as V
-from ._fresnel import _kt_squared, _own_loop, _positive_finite, _powers, _schlick_from_r0, _terms, _valid_index, materialize
-from ._refract import METHODS, _cross, _dot, _normalize, _refracted, _signed_cos, _valid_vectors, _vectors
+from ._fresnel import (
+    _kt_squared,
+    _own_loop,
+    _positive_finite,
+    _powers,
+    _schlick_from_r0,
+    _terms,
+    _valid_index,
+    materialize,
+)
+from ._refract import (
+    METHODS,
+    _cross,
+    _dot,
+    _normalize,
+    _refracted,
+    _signed_cos,
+    _valid_vectors,
+    _vectors,
+)
 from ._stack import stack
 
 OUTPUTS = ("r", "t", "tir", "R", "T", "R_s", "R_p")
@@ -64,7 +83,13 @@ class InterfaceSpec(NamedTuple):
 
 
 class Interaction(NamedTuple):
-    """Outputs of `interface`; fields not asked for in the spec are `None`."""
+    """Outputs of `interface`; fields not asked for in the spec are `None`.
+
+    **Fields:** `r`, `t`: unit reflected and transmitted directions `(..., 3)` (`t` is the
+    reflected direction where `tir`); `tir`: boolean `(...)`; `R`, `T`: unpolarized reflectance
+    and transmittance `(...)`; `R_s`, `R_p`: reflectance per polarization `(...)`. Dtype of the
+    inputs; NaN (and `tir = False`) for out-of-domain elements.
+    """
 
     r: jax.Array | None = None
     t: jax.Array | None = None
@@ -78,7 +103,8 @@ class Interaction(NamedTuple):
 DEFAULT_SPEC = InterfaceSpec()
 
 
-def interface(i, n, eta1, eta2, *, spec: InterfaceSpec = DEFAULT_SPEC) -> Interaction:
+def interface(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batch 3"], eta1: Float[ArrayLike, "*#batch"],
+              eta2: Inexact[ArrayLike, "*#batch"], *, spec: InterfaceSpec = DEFAULT_SPEC) -> Interaction:
     r"""Everything a renderer needs at a hit, in one pass, specialized by `spec`.
 
     **Arguments:** `i` (toward the surface), `n` (either orientation), `(..., 3)`; `eta1`, `eta2`
@@ -234,8 +260,10 @@ class Hit(NamedTuple):
     tir: jax.Array
 
 
-def scene_interface(i, n, kind, eta1, eta2, *, scene: SceneSpec = SceneSpec(), film_eta=None,
-                    film_d=None) -> Hit:
+def scene_interface(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batch 3"], kind: Int[ArrayLike, "*#batch"],
+                    eta1: Float[ArrayLike, "*#batch"], eta2: Inexact[ArrayLike, "*#batch"], *,
+                    scene: SceneSpec = SceneSpec(), film_eta: Inexact[ArrayLike, "*#batch"] | None = None,
+                    film_d: Float[ArrayLike, "*#batch"] | None = None) -> Hit:
     r"""The interface at each hit of a scene with several kinds of material.
 
     **Arguments:** `i`, `n` `(..., 3)`; `kind` `(...)` integer index into `scene.kinds` per hit;

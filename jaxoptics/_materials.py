@@ -8,11 +8,12 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
 
 from . import _validate as V
 
 
-def cauchy(wavelength_um, coefficients):
+def cauchy(wavelength_um: Float[ArrayLike, "*batch"], coefficients: Float[ArrayLike, " k"]) -> Float[Array, "*batch"]:
     r"""Cauchy's law `n = A + B / lambda^2 + C / lambda^4 + ...` (wavelength in micrometres).
 
     **Arguments:**
@@ -35,7 +36,8 @@ def cauchy(wavelength_um, coefficients):
     return n
 
 
-def sellmeier(wavelength_um, B, C):
+def sellmeier(wavelength_um: Float[ArrayLike, "*batch"], B: Float[ArrayLike, " k"],
+              C: Float[ArrayLike, " k"]) -> Float[Array, "*batch"]:
     r"""Sellmeier's law `n^2 = 1 + sum_i B_i lambda^2 / (lambda^2 - C_i)` (lambda in micrometres,
     `C_i` in micrometres squared).
 
@@ -63,7 +65,13 @@ def sellmeier(wavelength_um, B, C):
 
 
 class Material(NamedTuple):
-    """Published dispersion of a material: `index(wavelength_um)` evaluates it."""
+    """Published dispersion of a material: `index(wavelength_um)` evaluates it.
+
+    **Fields:** `name`; `model`, `"sellmeier"` or `"cauchy"`; `B`, `C`, the coefficients of
+    `sellmeier` (`C` in micrometres squared) or, for Cauchy, `B` the coefficients of `cauchy`;
+    `range_um`, the wavelength range the coefficients were fitted over (micrometres); `reference`,
+    the source.
+    """
 
     name: str
     model: str  # "sellmeier" or "cauchy"
@@ -107,8 +115,11 @@ MATERIALS = {
 }
 
 
-def material_index(name: str, wavelength_um):
-    """Refractive index of a catalogued material (`MATERIALS`) at `wavelength_um` (micrometres)."""
+def material_index(name: str, wavelength_um: Float[ArrayLike, "*batch"]) -> Float[Array, "*batch"]:
+    """Refractive index of a catalogued material (a key of `MATERIALS`) at `wavelength_um`
+    (micrometres, any shape; the dtype follows the input). Outside the material's `range_um` the
+    law is extrapolated, not flagged. An unknown name raises a `ValueError` listing the known
+    ones."""
     try:
         m = MATERIALS[name]
     except KeyError:

@@ -64,8 +64,9 @@ def keep_freed_memory(*, enable: bool = True) -> bool:
 
     Process-wide and opt-in: call it once at start-up in a program that runs large jitted kernels
     on the CPU many times. Each thread's malloc arena grows to its working size once, so the first
-    few (up to about ten) calls of a kernel still fault; after that, none do. Measured on this package's benchmark (10^7 float32 values, 2 cores):
-    a copy kernel goes from about 10 to 2 ms and `jo.fresnel` from 15 to 5 ms; see the README.
+    few (up to about ten) calls of a kernel still fault; after that, none do. The benchmark's
+    "What bounds XLA on the CPU" table measures the effect (10^7 float32 values: a copy kernel and
+    `jo.fresnel` with and without it; see the performance page of the documentation).
     The price is memory: the heap keeps its peak size until the process exits.
     """
     libc = _glibc()

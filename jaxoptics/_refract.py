@@ -27,6 +27,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
 
 from . import _validate as V
 from ._fresnel import _kt_squared, _positive_finite, materialize, sqrt_where
@@ -172,7 +173,7 @@ def _valid_vectors(i, n):
     return (ii > 0) & (nn > 0) & jnp.isfinite(ii + nn)
 
 
-def reflect(i, n):
+def reflect(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batch 3"]) -> Float[Array, "*batch 3"]:
     r"""Mirror direction `r = i - 2 (i . n) n`.
 
     **Arguments:**
@@ -191,7 +192,8 @@ def reflect(i, n):
     return jnp.where(_valid_vectors(i, n)[..., None], r, jnp.nan)
 
 
-def refract(i, n, eta1, eta2, *, method: str = "degreve", oliveira_c: float = 1.0) -> Refraction:
+def refract(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batch 3"], eta1: Float[ArrayLike, "*#batch"],
+            eta2: Float[ArrayLike, "*#batch"], *, method: str = "degreve", oliveira_c: float = 1.0) -> Refraction:
     r"""Refracted direction by Snell's law, with the total-internal-reflection mask.
 
     **Arguments:**
@@ -318,7 +320,7 @@ def _refracted(method, i, n, nf, c, ki, kt, diff, cr, eta1, eta2, oliveira_c):
     return t / jnp.sqrt(jnp.maximum(tt, jnp.asarray(jnp.finfo(tt.dtype).tiny, tt.dtype)))  # tt > 0 unless i == c n_f
 
 
-def critical_angle(eta1, eta2):
+def critical_angle(eta1: Float[ArrayLike, "*batch"], eta2: Float[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
     r"""Critical angle `asin(eta2 / eta1)` in radians, for light going from `eta1` into `eta2`.
 
     Computed as `atan2(eta2, sqrt((eta1 - eta2)(eta1 + eta2)))`, which is accurate even when the
@@ -342,7 +344,7 @@ def critical_angle(eta1, eta2):
     return jnp.where(valid, theta, jnp.nan).astype(dt)
 
 
-def brewster_angle(eta1, eta2):
+def brewster_angle(eta1: Float[ArrayLike, "*batch"], eta2: Float[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
     r"""Brewster's angle `atan(eta2 / eta1)` in radians, where `R_p = 0`.
 
     Computed as `atan2(eta2, eta1)`. Exists for all positive real indices, for either direction

@@ -14,16 +14,24 @@ logical batch, or builds a global array with `jax.make_array_from_process_local_
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+from jaxtyping import Array, ArrayLike, Float
+
+from ._fit_result import FitResult
 
 AXIS = "batch"
 
 
-def batch_mesh(*, devices=None) -> Mesh:
-    """A one-dimensional mesh named `"batch"` over `devices` (default: all of `jax.devices()`)."""
+def batch_mesh(*, devices: Sequence[jax.Device] | None = None) -> Mesh:
+    """A one-dimensional mesh named `"batch"` over `devices` (default: all of `jax.devices()`),
+    for `shard_batch`, `sharded_map` and `fit_eta_sharded`. Multi-host: after
+    `jax.distributed.initialize()`, `jax.devices()` spans the hosts."""
     devices = jax.devices() if devices is None else list(devices)
     return Mesh(np.asarray(devices), (AXIS,))
 
@@ -33,7 +41,7 @@ def batch_sharding(mesh: Mesh, ndim: int) -> NamedSharding:
     return NamedSharding(mesh, P(AXIS, *([None] * (ndim - 1))))
 
 
-def shard_batch(x, *, mesh: Mesh | None = None):
+def shard_batch(x: ArrayLike, *, mesh: Mesh | None = None) -> tuple[Array, int]:
     """Pad `x` along axis 0 to a multiple of the device count (repeating its last entry, so the
     padding is valid data) and place it sharded along that axis. Returns `(sharded, n)` with `n` the
     original length."""
@@ -53,7 +61,8 @@ def _trim(out, n, total, keep_padding):
     return jax.tree_util.tree_map(lambda y: y[:n] if jnp.ndim(y) and y.shape[0] == total else y, out)
 
 
-def sharded_map(fn, *arrays, mesh: Mesh | None = None, broadcast=(), keep_padding=False):
+def sharded_map(fn: Callable, *arrays: ArrayLike, mesh: Mesh | None = None, broadcast: Sequence[ArrayLike] = (),
+                keep_padding: bool = False):
     """Apply an elementwise-over-axis-0 function to arrays sharded along their first axis.
 
     **Arguments:** `fn(*arrays, *broadcast)`; `arrays` share their first (batch) axis, of any
@@ -74,7 +83,8 @@ def sharded_map(fn, *arrays, mesh: Mesh | None = None, broadcast=(), keep_paddin
     return _trim(out, n, placed[0][0].shape[0], keep_padding)
 
 
-def fit_eta_sharded(theta, R, *, mesh: Mesh | None = None, keep_padding=False, **kwargs):
+def fit_eta_sharded(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "B m"], *, mesh: Mesh | None = None,
+                    keep_padding: bool = False, **kwargs) -> FitResult:
     """`fit_eta` on a batch of curves `R` (shape `(B, m)`) spread over the devices of `mesh`.
 
     Pads the batch to a multiple of the device count (with copies of the last curve), fits all

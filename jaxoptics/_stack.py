@@ -89,6 +89,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Float, Inexact
 
 from . import _validate as V
 from ._fresnel import _abs2, _kt_squared, decaying_sqrt, materialize, sqrt_where
@@ -139,7 +140,9 @@ class StackResult(NamedTuple):
 
 
 class Ellipsometry(NamedTuple):
-    """Ellipsometric angles, radians: ``psi`` in ``[0, pi/2]``, ``delta`` in ``(-pi, pi]``."""
+    """Ellipsometric angles in radians, arrays of the batch shape: `psi` in `[0, pi/2]`, `delta`
+    in `(-pi, pi]` (tmm's `ellips` convention; instruments report `Psi = psi`,
+    `Delta = pi - delta`: see `ellipsometry`). NaN for out-of-domain elements."""
 
     psi: jax.Array
     delta: jax.Array
@@ -189,8 +192,9 @@ _PIO2_SPLIT_F32 = (1.5703125, 4.837512969970703125e-4, 7.549789415861596e-8, 5.3
 def _expm1_imag(x, y):
     """expm1(x + i y) for real x <= 0 (or small) and y of any size, as a complex number.
 
-    XLA's complex `expm1` calls the C library's scalar `sincos` in float64 on the CPU, and its
-    cost exceeds the rest of a layer's step. Here the argument is reduced once, in SIMD:
+    XLA's float64 sine and cosine on the CPU cost about 7 ns per element (exp: 0.5 ns; measured at
+    10^6 elements), and its complex `expm1` evaluates both. Here the argument is reduced once,
+    vectorized:
     `k = round(y / (pi/2))` and `r = y - k pi/2` with pi/2 split in four parts whose leading ones
     have trailing zero bits (Cody and Waite; fdlibm's and Cephes' constants), so the products with
     `k` are exact for `|k| < 2**20` (float64) or `2**13` (float32) and `r` is accurate to an ulp
@@ -461,7 +465,8 @@ def _valid(n, d, wavelength, cos_i):
     return ok
 
 
-def stack(n, d, wavelength, cos_i, *, incoherent=()) -> StackResult:
+def stack(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batch L-2"], wavelength: Float[ArrayLike, "*#batch"],
+          cos_i: Float[ArrayLike, "*#batch"], *, incoherent: tuple[int, ...] = ()) -> StackResult:
     r"""Reflection, transmission and absorption of a multilayer stack, both polarizations.
 
     **Arguments:**
@@ -648,7 +653,9 @@ def _incoherent(valid, bounds, ki, nn, dd, k0, kz_sq):
     return _finish(valid, Rs, Rp, Ts, Tp, As, Ap, None, X[0])
 
 
-def ellipsometry(n, d, wavelength, cos_i, *, incoherent=()) -> Ellipsometry:
+def ellipsometry(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batch L-2"],
+                 wavelength: Float[ArrayLike, "*#batch"], cos_i: Float[ArrayLike, "*#batch"], *,
+                 incoherent: tuple[int, ...] = ()) -> Ellipsometry:
     r"""Ellipsometric angles `(psi, delta)` of a stack, in radians.
 
     **Arguments:** as `stack`.

@@ -7,8 +7,8 @@ cannot be checked inside ``jit``; the kernels document what out-of-domain values
 
 from __future__ import annotations
 
-import numpy as np
 import jax.numpy as jnp
+import numpy as np
 
 
 def _dtype_of(x):

@@ -407,6 +407,7 @@ def test_fit_jacobian_column_matches_mpmath(pol):
     50-digit Fresnel reflectance: external and internal reflection, near normal and grazing
     incidence, and 0 under TIR; relative 1e-9 (the Jacobian sets the step and the errors)."""
     import mpmath as mp
+
     from jaxoptics._fit_model import _model, _reflectance_d_eta2
     from jaxoptics.tools.mpref import fresnel_ref, mpf
 
@@ -464,6 +465,7 @@ def test_complex_fit_model_and_jacobian_match_mpmath(pol):
     """The complex fits' one-loop model and its closed-form derivative in n and k (the solver's
     Jacobian) against the 50-digit reflectance and mpmath.diff: absolute 1e-14, relative 1e-9."""
     import mpmath as mp
+
     from jaxoptics._fit_model import _model
     from jaxoptics.tools.mpref import fresnel_ref, mpf
 

@@ -11,9 +11,9 @@ import jax.numpy as jnp
 import mpmath as mp
 import numpy as np
 import pytest
+from helpers import backward_bound, fresnel_ref, fresnel_specials, spacing
 
 import jaxoptics as jo
-from helpers import backward_bound, fresnel_ref, fresnel_specials, spacing
 
 DTYPES = [np.float32, np.float64]
 # Complex amplitudes go through complex multiplications and divisions, each good to a few ulps

@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import mpmath as mp
 import numpy as np
 import pytest
+from helpers import fresnel_ref, mpf, refract_ref
 
 import jaxoptics as jo
-from helpers import fresnel_ref, mpf, refract_ref
 
 DTYPES = [np.float32, np.float64]
 

@@ -8,9 +8,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import backward_bound, mpf, refract_ref, spacing
 
 import jaxoptics as jo
-from helpers import backward_bound, mpf, refract_ref, spacing
 
 DTYPES = [np.float32, np.float64]
 

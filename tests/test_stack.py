@@ -9,9 +9,9 @@ import mpmath as mp
 import numpy as np
 import pytest
 import tmm
+from helpers import stack_ref
 
 import jaxoptics as jo
-from helpers import stack_ref
 
 # ---- oracles -------------------------------------------------------------------------------------
 

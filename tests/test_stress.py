@@ -24,7 +24,7 @@ def test_sweep_size_and_categories(report):
         assert r["n"] >= 100_000
 
 
-# Documented accuracy (README, "Stress test"): error beyond the 2-ulp backward bound, in ulps.
+# Documented accuracy (docs/numerics.md): error beyond the 2-ulp backward bound, in ulps.
 LIMITS = {
     ("fresnel", "float64"): 4, ("fresnel_sp.R_s", "float64"): 4, ("fresnel_sp.R_p", "float64"): 4,
     ("fresnel_rt.T", "float64"): 4, ("fresnel_amplitudes.r_s", "float64"): 8, ("fresnel_amplitudes.r_p", "float64"): 8,
@@ -56,7 +56,7 @@ def test_invariants(report):
 def test_stack_section(report):
     """Thin-film stacks: no NaN/inf values or gradients in any category, float64 within 1e-13 of
     40-digit mpmath, energy balanced to rounding, float32 within a few float32 roundings of what a
-    2-ulp change of its inputs causes (README, "Stress test")."""
+    2-ulp change of its inputs causes (docs/numerics.md, "Stress test")."""
     rows = {r["category"]: r for r in report["stack"]}
     assert set(rows) == {"random", "thick absorbers", "TIR and frustrated TIR", "inner layer at its critical angle",
                          "grazing incidence", "zero thicknesses", "index-matched layers", "metals"}

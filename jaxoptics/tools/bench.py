@@ -298,9 +298,8 @@ def run_stamp() -> str:
 
 def run(*, quick=False, sections=("kernels", "fit", "stack", "devices"), out_dir="bench_out", sizes=None,
         mitsuba=True) -> dict:
-    from tqdm.auto import tqdm
-
     import jax
+    from tqdm.auto import tqdm
 
     jax.config.update("jax_enable_x64", True)
     out = Path(out_dir)

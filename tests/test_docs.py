@@ -1,0 +1,64 @@
+"""The README and the documentation site: the site builds with `mkdocs build --strict`, every
+link and image in README.md and docs/ resolves, the README stays short, and its test command is
+the one CI runs."""
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "README.md"] + sorted((ROOT / "docs").glob("*.md"))
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
+SNIPPET = re.compile(r'^--8<-- "([^"]+)"', re.M)
+
+
+def _targets(page):
+    text = page.read_text()
+    text = re.sub(r"```.*?```", "", text, flags=re.S)  # links inside code blocks are code
+    return [m.group(1) for m in LINK.finditer(text)]
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_links_and_images_resolve(page):
+    """Every relative link and image of the page names an existing file (anchors stripped), and
+    every snippet it includes exists."""
+    missing = []
+    for target in _targets(page):
+        if re.match(r"^[a-z]+://|^mailto:", target):
+            continue
+        path = target.split("#")[0]
+        if path and not (page.parent / path).exists():
+            missing.append(target)
+    for snippet in SNIPPET.findall(page.read_text()):
+        if not (ROOT / "docs" / snippet).exists():
+            missing.append(snippet)
+    assert not missing, f"{page.relative_to(ROOT)}: missing {missing}"
+
+
+def test_readme_is_short_and_has_the_ci_command():
+    """At most about 10 KB; its second command (the tests) is exactly what .ci/run runs, and its
+    first installs the package and runs the main job."""
+    text = (ROOT / "README.md").read_text()
+    assert len(text.encode()) <= 10_500, len(text.encode())
+    blocks = re.findall(r"```\n(.*?)\n```", text, flags=re.S)
+    main, tests = blocks[0].strip(), blocks[1].strip()
+    assert "pip install" in main and "jaxoptics fit --example" in main
+    ci = [line for line in (ROOT / ".ci" / "run").read_text().splitlines() if line.strip() and not line.startswith("#")]
+    assert tests in ci, (tests, ci)
+
+
+def test_site_builds_strict(tmp_path):
+    """`mkdocs build --strict` (broken links, missing snippets, API pages that fail to render: all
+    errors) succeeds, and the API reference renders every public name."""
+    res = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-q", "-d", str(tmp_path / "site")],
+                         cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout + res.stderr
+    api = (tmp_path / "site" / "api" / "index.html").read_text()
+    import jaxoptics as jo
+
+    public = [n for n in dir(jo) if not n.startswith("_")]
+    absent = [n for n in public if f'id="jaxoptics.{n}"' not in api]
+    assert not absent, absent
