@@ -1,5 +1,8 @@
-"""Every notebook runs top to bottom on a fresh install (executed here, each well under a minute),
-with no error cell."""
+"""Every notebook runs top to bottom on a fresh install, with no error cell.
+
+The longest cells take about 30 s on a quiet 2-core machine and several times that when the suite
+shares the machine; the per-cell timeout only catches a hang, so it is far above both (time is not
+what these tests judge)."""
 
 import pathlib
 
@@ -7,13 +10,16 @@ import nbclient
 import nbformat
 import pytest
 
+CELL_TIMEOUT_S = 900
 NOTEBOOKS = sorted((pathlib.Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
 def test_notebook_runs(path, tmp_path):
     nb = nbformat.read(path, as_version=4)
-    nbclient.NotebookClient(nb, timeout=120, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}}).execute()
+    client = nbclient.NotebookClient(nb, timeout=CELL_TIMEOUT_S, kernel_name="python3",
+                                     resources={"metadata": {"path": str(path.parent)}})
+    client.execute()
     errors = [o for c in nb.cells for o in c.get("outputs", []) if o.get("output_type") == "error"]
     assert not errors
     images = sum(1 for c in nb.cells for o in c.get("outputs", []) if "image/png" in o.get("data", {}))
