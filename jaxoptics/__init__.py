@@ -3,7 +3,13 @@
 Conventions (de Greve's): `i` points toward the surface, `eta1` is the medium the light comes
 from, `eta2` the medium it enters (complex `n + ik`, `k >= 0`, where allowed); angles in radians;
 vectors `(..., 3)`; dtype follows the inputs.
+
+The fitting names (`fit_eta`, `FitResult`, `OneColumnLeastSquares`, `fit_dispersion`,
+`DispersionFit`) are imported on first use: they need optimistix, equinox and lineax, which a
+program that only calls the kernels does not load.
 """
+
+import typing as _typing
 
 from ._fresnel import FresnelAmplitudes as FresnelAmplitudes
 from ._fresnel import fresnel as fresnel
@@ -26,12 +32,7 @@ from ._data import Curve as Curve
 from ._data import ReflectanceData as ReflectanceData
 from ._data import example_path as example_path
 from ._data import load_reflectance as load_reflectance
-from ._dispersion_fit import DispersionFit as DispersionFit
-from ._dispersion_fit import fit_dispersion as fit_dispersion
-from ._fit import fit_eta as fit_eta
 from ._fit_model import synthetic_reflectance as synthetic_reflectance
-from ._fit_result import FitResult as FitResult
-from ._fit_solver import OneColumnLeastSquares as OneColumnLeastSquares
 from ._interface import Hit as Hit
 from ._interface import Interaction as Interaction
 from ._interface import InterfaceSpec as InterfaceSpec
@@ -50,3 +51,35 @@ from ._shard import shard_batch as shard_batch
 from ._shard import sharded_map as sharded_map
 
 __version__ = "0.1.0"
+
+# imported on first use (see the module docstring); listed here for readers and type checkers
+_LAZY = {
+    "fit_eta": "._fit",
+    "FitResult": "._fit_result",
+    "OneColumnLeastSquares": "._fit_solver",
+    "fit_dispersion": "._dispersion_fit",
+    "DispersionFit": "._dispersion_fit",
+}
+if _typing.TYPE_CHECKING:
+    from ._fit import fit_eta as fit_eta
+    from ._fit_result import FitResult as FitResult
+    from ._fit_solver import OneColumnLeastSquares as OneColumnLeastSquares
+    from ._dispersion_fit import DispersionFit as DispersionFit
+    from ._dispersion_fit import fit_dispersion as fit_dispersion
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(_LAZY[name], __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'jaxoptics' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))
+
+
+__all__ = sorted({n for n in globals() if not n.startswith("_")} | set(_LAZY))

@@ -17,9 +17,44 @@ import sys
 from pathlib import Path
 
 
+def compilation_cache_dir() -> Path | None:
+    """Where the command line keeps compiled programs between runs, or None when turned off.
+
+    `JAXOPTICS_CACHE_DIR` if set (an empty value or `off` turns the cache off), else
+    `$XDG_CACHE_HOME/jaxoptics/xla` (`~/.cache/jaxoptics/xla` by default)."""
+    import os
+
+    env = os.environ.get("JAXOPTICS_CACHE_DIR")
+    if env is not None:
+        return None if env.strip().lower() in ("", "off", "0", "none") else Path(env).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "jaxoptics" / "xla"
+
+
+def _use_compilation_cache(args) -> None:
+    """JAX's persistent compilation cache for this process: a later run of the same command
+    loads the compiled programs instead of compiling them again. Every program is cached (JAX's
+    default keeps only those that took a second or more to compile), the cache is capped at
+    1 GiB (least recently used entries are evicted), and JAX guards it with a file lock, so
+    processes can share it."""
+    import jax
+
+    if getattr(args, "no_cache", False):
+        return
+    path = compilation_cache_dir()
+    if path is None:
+        return
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    jax.config.update("jax_compilation_cache_max_size", 2**30)
+
+
 def _demo(args) -> int:
     import jax
     import numpy as np
+
+    _use_compilation_cache(args)
 
     jax.config.update("jax_enable_x64", True)
     import jaxoptics as jo
@@ -47,6 +82,8 @@ def _demo(args) -> int:
 def _fit(args) -> int:
     import jax
     import numpy as np
+
+    _use_compilation_cache(args)
 
     jax.config.update("jax_enable_x64", True)
     import jaxoptics as jo
@@ -186,6 +223,7 @@ def main(argv=None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("demo", help="Fresnel table for air/glass in both directions")
     p.add_argument("--eta", type=float, default=1.5, help="index of the glass (default 1.5)")
+    p.add_argument("--no-cache", action="store_true", help="do not use the compilation cache (see `fit --help`)")
     p.set_defaults(func=_demo)
     p = sub.add_parser("fit", help="fit the index to reflectance-vs-angle data in a CSV file")
     p.add_argument("file", nargs="?", help="CSV with columns angle_deg, R [, polarization, wavelength_um, sigma]")
@@ -195,12 +233,15 @@ def main(argv=None) -> int:
     p.add_argument("--eta1", type=float, default=1.0, help="index of the incident medium (default 1.0)")
     p.add_argument("--absorbing", action="store_true", help="fit a complex index n + ik")
     p.add_argument("--plot", metavar="OUT.png", help="save data, fit and residuals as a figure")
+    p.add_argument("--no-cache", action="store_true",
+                   help="do not keep compiled programs between runs (by default they are kept in "
+                        "$JAXOPTICS_CACHE_DIR or ~/.cache/jaxoptics/xla; JAXOPTICS_CACHE_DIR=off turns it off)")
     p.set_defaults(func=_fit)
     p = sub.add_parser("bench", help="speed and error, side by side with peers, on this machine")
     p.add_argument("--quick", action="store_true", help="a reduced run (about a minute)")
     p.add_argument("--out", default="bench_out", help="directory for bench.md, bench.json and the charts")
-    p.add_argument("--sections", default="kernels,fit,stack,devices",
-                   help="comma-separated: kernels, fit, stack, devices")
+    p.add_argument("--sections", default="kernels,fit,stack,devices,latency",
+                   help="comma-separated: kernels, fit, stack, devices, latency")
     p.add_argument("--no-mitsuba", action="store_true", help="skip Mitsuba 3 even if installed")
     p.set_defaults(func=_bench)
     p = sub.add_parser("stress", help="numerical stress test of every kernel")

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import ArrayLike, Float
 
 from . import _validate as V
 from ._fit import _warn_if_x64_off, check_curves, fit_eta
@@ -16,6 +17,9 @@ from ._fit_model import POLARIZATIONS, _model
 from ._fit_solver import _tol
 from ._fresnel import materialize
 from ._materials import cauchy, sellmeier
+
+if TYPE_CHECKING:
+    from jaxtyping import ArrayLike, Float
 
 MODELS = ("cauchy", "sellmeier")
 # Starting poles for Sellmeier fits (micrometres squared): typical of optical glasses and silica,

@@ -13,18 +13,21 @@ the standard errors), `_fit_followups` (refits and second branches on concrete d
 from __future__ import annotations
 
 import warnings
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import ArrayLike, Float, Inexact
 
 from . import _validate as V
 from ._fit_followups import _batch_shards, _fit_per_shard, _is_concrete, _solve
 from ._fit_model import POLARIZATIONS
 from ._fit_result import FitResult
 from ._fit_solver import _default_solver, _tol
+
+if TYPE_CHECKING:
+    from jaxtyping import ArrayLike, Float, Inexact
 
 
 def _check_theta(theta, R_shape, n_params, at):

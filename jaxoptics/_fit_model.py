@@ -4,14 +4,17 @@ derivatives in the index, and `synthetic_reflectance` to make test curves from i
 from __future__ import annotations
 
 import functools
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
-from jaxtyping import Array, ArrayLike, Float, Inexact, PRNGKeyArray
 
 from . import _validate as V
 from ._fresnel import _own_loop, fresnel, fresnel_sp
+
+if TYPE_CHECKING:
+    from jaxtyping import Array, ArrayLike, Float, Inexact, PRNGKeyArray
 
 POLARIZATIONS = ("unpolarized", "s", "p")
 

@@ -62,14 +62,16 @@ Physically-based Rendering* (1994).
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
-from jaxtyping import Array, ArrayLike, Float, Inexact
 
 from . import _validate as V
+
+if TYPE_CHECKING:
+    from jaxtyping import Array, ArrayLike, Float, Inexact
 
 
 class FresnelAmplitudes(NamedTuple):

@@ -9,12 +9,11 @@ options select cheaper formulas where the scene allows (Schlick, no TIR, no inpu
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike, Float, Inexact, Int
 
 from . import _validate as V
 from ._fresnel import (
@@ -38,6 +37,9 @@ from ._refract import (
     _vectors,
 )
 from ._stack import stack
+
+if TYPE_CHECKING:
+    from jaxtyping import ArrayLike, Float, Inexact, Int
 
 OUTPUTS = ("r", "t", "tir", "R", "T", "R_s", "R_p")
 FRESNEL_MODELS = ("exact", "schlick", "schlick_tir")

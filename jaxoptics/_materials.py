@@ -5,12 +5,14 @@ Wavelengths are in micrometres (`wavelength_um`) everywhere, as in the catalogue
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float
 
 from . import _validate as V
+
+if TYPE_CHECKING:
+    from jaxtyping import Array, ArrayLike, Float
 
 
 def cauchy(wavelength_um: Float[ArrayLike, "*batch"], coefficients: Float[ArrayLike, " k"]) -> Float[Array, "*batch"]:

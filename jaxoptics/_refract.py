@@ -23,14 +23,16 @@ NaN in every output (and `tir = False`); nothing raises inside `jit`.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float
 
 from . import _validate as V
 from ._fresnel import _kt_squared, _positive_finite, materialize, sqrt_where
+
+if TYPE_CHECKING:
+    from jaxtyping import Array, ArrayLike, Float
 
 METHODS = ("degreve", "heckbert", "bec", "oliveira")
 

@@ -15,15 +15,18 @@ logical batch, or builds a global array with `jax.make_array_from_process_local_
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
-from jaxtyping import Array, ArrayLike, Float
 
-from ._fit_result import FitResult
+if TYPE_CHECKING:
+    from jaxtyping import Array, ArrayLike, Float
+
+    from ._fit_result import FitResult
 
 AXIS = "batch"
 

@@ -84,15 +84,17 @@ R. M. A. Azzam, N. M. Bashara, *Ellipsometry and Polarized Light*.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike, Float, Inexact
 
 from . import _validate as V
 from ._fresnel import _abs2, _kt_squared, decaying_sqrt, materialize, sqrt_where
+
+if TYPE_CHECKING:
+    from jaxtyping import ArrayLike, Float, Inexact
 
 
 class StackResult(NamedTuple):

@@ -143,3 +143,16 @@ def test_stack_bench_section(tmp_path, monkeypatch):
     assert fwd["float32"]["max_abs_diff_vs_numpy"] < 1e-4
     assert all(r["run_s"] > 0 for r in rows)
     assert "x the forward pass" in bs.stack_table(rows)
+
+
+def test_latency_section(tmp_path):
+    """The latency section runs every case in fresh processes and reports each, with the CLI
+    rows compared to the SciPy script measured in the same run."""
+    from jaxoptics.tools.bench_latency import bench_latency, latency_table
+
+    rows = bench_latency(repeats=1)
+    cases = [r["case"] for r in rows]
+    assert len(cases) == 9 and cases[0] == "import jaxoptics"
+    assert all(r["median_s"] > 0 for r in rows)
+    table = latency_table(rows)
+    assert table.count("x |") == 4  # three CLI rows and the SciPy row carry a ratio

@@ -59,6 +59,6 @@ def test_site_builds_strict(tmp_path):
     api = (tmp_path / "site" / "api" / "index.html").read_text()
     import jaxoptics as jo
 
-    public = [n for n in dir(jo) if not n.startswith("_")]
+    public = jo.__all__
     absent = [n for n in public if f'id="jaxoptics.{n}"' not in api]
     assert not absent, absent

@@ -296,7 +296,7 @@ def run_stamp() -> str:
     return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
 
 
-def run(*, quick=False, sections=("kernels", "fit", "stack", "devices"), out_dir="bench_out", sizes=None,
+def run(*, quick=False, sections=("kernels", "fit", "stack", "devices", "latency"), out_dir="bench_out", sizes=None,
         mitsuba=True) -> dict:
     import jax
     from tqdm.auto import tqdm
@@ -307,7 +307,8 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "devices"), out_dir
     report = {"machine": machine_description(), "quick": quick, "date": run_stamp()}
     cmd = "python -m jaxoptics bench" + (" --quick" if quick else "") + f" --sections {','.join(sections)}"
     md = [f"Measured by `{cmd}` on {report['date']}. Machine: {report['machine']}.", ""]
-    total = 6 * ("fit" in sections) + 3 * ("devices" in sections) + 24 * ("kernels" in sections) + 3 * ("stack" in sections)
+    total = (6 * ("fit" in sections) + 3 * ("devices" in sections) + 24 * ("kernels" in sections) + 3 * ("stack" in sections)
+             + 9 * ("latency" in sections))
     with tqdm(total=total, desc="bench", unit="step") as bar:
         if "kernels" in sections:
             rows = bench_kernels(quick=quick, progress=bar, sizes=sizes, mitsuba=mitsuba)
@@ -331,6 +332,12 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "devices"), out_dir
             report["stack"] = rows
             md += [f"### Thin-film stacks: {LAYERS} coherent layers on Si, R and T of s and p, (wavelength, angle) "
                    "points", "", stack_table(rows), ""]
+        if "latency" in sections:
+            from .bench_latency import bench_latency, latency_table
+
+            rows = bench_latency(quick=quick, progress=bar)
+            report["latency"] = rows
+            md += ["### Latency: from the command to the answer (fresh processes)", "", latency_table(rows), ""]
         if "devices" in sections:
             rows = bench_devices(quick=quick, progress=bar)
             report["devices"] = rows

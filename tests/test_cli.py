@@ -1,0 +1,41 @@
+"""The command line as a user runs it, in fresh processes: what `import jaxoptics` loads, and the
+compilation cache of `python -m jaxoptics fit`."""
+
+import os
+import subprocess
+import sys
+
+
+def _run(args, **env):
+    e = dict(os.environ)
+    e.update(env)
+    return subprocess.run([sys.executable, *args], env=e, capture_output=True, text=True, timeout=900, check=True)
+
+
+def test_import_loads_only_what_the_kernels_need():
+    """`import jaxoptics` does not load the fitting stack (optimistix, equinox, lineax), plotting,
+    SciPy or the tools' dependencies; the fitting names load them on first use."""
+    heavy = ("optimistix", "equinox", "lineax", "matplotlib", "scipy", "mpmath", "tqdm", "jaxoptics.tools")
+    code = ("import sys, jaxoptics as jo; mods = set(sys.modules); "
+            f"print(sorted(m for m in mods if m.split('.')[0] in {heavy!r} or m.startswith('jaxoptics.tools'))); "
+            "jo.fit_eta; print('optimistix' in sys.modules)")
+    out = _run(["-c", code]).stdout.split("\n")
+    assert out[0] == "[]", out[0]
+    assert out[1] == "True"
+
+
+def test_fit_keeps_compiled_programs_between_runs(tmp_path):
+    """A first run fills the cache directory, a second run gives the same answer from it;
+    `--no-cache` and `JAXOPTICS_CACHE_DIR=off` write nothing."""
+    cache = tmp_path / "cache"
+    first = _run(["-m", "jaxoptics", "fit", "--example"], JAXOPTICS_CACHE_DIR=str(cache)).stdout
+    entries = sorted(p.name for p in cache.iterdir())
+    assert any(not n.endswith("-atime") and not n.startswith(".") for n in entries), entries
+    second = _run(["-m", "jaxoptics", "fit", "--example"], JAXOPTICS_CACHE_DIR=str(cache)).stdout
+    assert second == first
+    off = tmp_path / "off"
+    _run(["-m", "jaxoptics", "fit", "--example", "--no-cache"], JAXOPTICS_CACHE_DIR=str(off))
+    assert not off.exists()
+    home = tmp_path / "home"
+    _run(["-m", "jaxoptics", "demo"], JAXOPTICS_CACHE_DIR="off", HOME=str(home), XDG_CACHE_HOME=str(home / "xdg"))
+    assert not (home / "xdg").exists()
