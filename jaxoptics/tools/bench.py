@@ -289,6 +289,22 @@ def fit_table(rows) -> str:
     return "\n".join(out)
 
 
+def _sections(sections):
+    """(name, title, measure, table) of the requested sections after "kernels", in report order."""
+    from .bench_latency import bench_latency, latency_table
+    from .bench_stack import LAYERS, bench_stack, stack_table
+
+    known = [
+        ("fit", "Index fits: 90 angles per curve, float64, noise 1e-3", bench_fit_in_subprocess, fit_table),
+        ("stack", f"Thin-film stacks: {LAYERS} coherent layers on Si, R and T of s and p, (wavelength, angle) points",
+         bench_stack, stack_table),
+        ("latency", "Latency: from the command to the answer (fresh processes)", bench_latency, latency_table),
+        ("devices", "Sharding over devices (forced host devices sharing this machine's cores)", bench_devices,
+         devices_table),
+    ]
+    return [k for k in known if k[0] in sections]
+
+
 def run_stamp() -> str:
     """The date and time of a run, UTC, for the tables the tools write."""
     import datetime
@@ -321,28 +337,10 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "devices", "latency
             lim = bench_limits(quick=quick, progress=bar, n=max(sizes) if sizes else None)
             report["limits"] = lim
             md += [f"### What bounds XLA on the CPU (float32, N = {lim[0]['n']:,})", "", limits_table(lim), ""]
-        if "fit" in sections:
-            rows = bench_fit_in_subprocess(quick=quick, progress=bar)
-            report["fit"] = rows
-            md += ["### Index fits: 90 angles per curve, float64, noise 1e-3", "", fit_table(rows), ""]
-        if "stack" in sections:
-            from .bench_stack import LAYERS, bench_stack, stack_table
-
-            rows = bench_stack(quick=quick, progress=bar)
-            report["stack"] = rows
-            md += [f"### Thin-film stacks: {LAYERS} coherent layers on Si, R and T of s and p, (wavelength, angle) "
-                   "points", "", stack_table(rows), ""]
-        if "latency" in sections:
-            from .bench_latency import bench_latency, latency_table
-
-            rows = bench_latency(quick=quick, progress=bar)
-            report["latency"] = rows
-            md += ["### Latency: from the command to the answer (fresh processes)", "", latency_table(rows), ""]
-        if "devices" in sections:
-            rows = bench_devices(quick=quick, progress=bar)
-            report["devices"] = rows
-            md += ["### Sharding over devices (forced host devices sharing this machine's cores)", "",
-                   devices_table(rows), ""]
+        for name, title, measure, table in _sections(sections):
+            rows = measure(quick=quick, progress=bar)
+            report[name] = rows
+            md += [f"### {title}", "", table(rows), ""]
     text = "\n".join(md)
     (out / "bench.md").write_text(text + "\n")
     (out / "bench.json").write_text(json.dumps(report, indent=2))
