@@ -46,10 +46,18 @@ def batch_sharding(mesh: Mesh, ndim: int) -> NamedSharding:
 
 def shard_batch(x: ArrayLike, *, mesh: Mesh | None = None) -> tuple[Array, int]:
     """Pad `x` along axis 0 to a multiple of the device count (repeating its last entry, so the
-    padding is valid data) and place it sharded along that axis. Returns `(sharded, n)` with `n` the
-    original length."""
+    padding is valid data) and place it sharded along that axis over `mesh` (default
+    `batch_mesh()`).
+
+    **Arguments:** `x`, an array of any dtype with a leading batch axis of length >= 1 (trailing
+    axes are kept whole on every device).
+
+    **Returns:** `(sharded, n)`: the padded array, sharded along axis 0, and `n` the original
+    length. A scalar or an empty batch raises a `ValueError`."""
     mesh = batch_mesh() if mesh is None else mesh
     x = jnp.asarray(x)
+    if x.ndim == 0 or x.shape[0] == 0:
+        raise ValueError(f"shard_batch needs an array with a non-empty leading batch axis, got shape {x.shape}")
     n = x.shape[0]
     k = mesh.devices.size
     pad = (-n) % k

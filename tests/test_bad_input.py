@@ -77,3 +77,9 @@ def test_documented_out_of_domain_values():
         assert np.all(np.isnan(np.asarray(jo.reflect(i, n))))
     for a, b in ((0.0, 1.0), (1.0, -1.0), (jnp.nan, 1.0), (jnp.inf, 1.0)):
         assert np.isnan(float(jo.critical_angle(a, b))) and np.isnan(float(jo.brewster_angle(a, b)))
+
+
+@pytest.mark.parametrize("x", [np.float64(1.0), np.zeros((0, 3))], ids=["scalar", "empty"])
+def test_shard_batch_refuses_a_missing_or_empty_batch_axis(x):
+    with pytest.raises(ValueError, match="non-empty leading batch axis"):
+        jo.shard_batch(x)
