@@ -2,7 +2,7 @@
 to the answer, each case in fresh processes, side by side in one run.
 
 - `import jaxoptics`;
-- the README's main job without the plot (`python -m jaxoptics fit --example`), with the
+- the main job of the README without the plot (`python -m jaxoptics fit --example`), with the
   compilation cache cold (a new, empty cache directory each repeat), warm, and turned off;
 - a plain SciPy script doing the same fit end to end: it reads the same CSV file and fits each
   curve with `scipy.optimize.least_squares` on the textbook Fresnel reflectance;
