@@ -62,3 +62,11 @@ def test_site_builds_strict(tmp_path):
     public = jo.__all__
     absent = [n for n in public if f'id="jaxoptics.{n}"' not in api]
     assert not absent, absent
+
+
+def test_readme_python_examples_run():
+    """The README's Python blocks, run in order in a fresh process (as a user would paste them)."""
+    text = (ROOT / "README.md").read_text()
+    code = "\n".join(re.findall(r"```python\n(.*?)```", text, flags=re.S))
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
