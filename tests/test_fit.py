@@ -8,7 +8,7 @@ import pytest
 import tmm
 
 import jaxoptics as jo
-from jaxoptics.__main__ import main
+from jaxoptics.__main__ import main  # in-process calls pass --no-cache: the compilation cache is process-wide
 
 THETA = np.deg2rad(np.linspace(0, 85, 90))
 
@@ -318,7 +318,7 @@ def test_load_reflectance_groups_curves(tmp_path):
 
 def test_cli_fit_example(capsys, tmp_path):
     out_png = tmp_path / "fit.png"
-    assert main(["fit", "--example", "--plot", str(out_png)]) == 0
+    assert main(["fit", "--example", "--plot", str(out_png), "--no-cache"]) == 0
     out = capsys.readouterr().out
     assert "combined at 0.5876 um" in out and out_png.stat().st_size > 10000
     # the combined estimate is within 4 standard errors of the index the example was made with
@@ -331,14 +331,14 @@ def test_cli_fit_file_and_errors(capsys, tmp_path):
     R = np.asarray(jo.synthetic_reflectance(None, 1.7, THETA[::5]))
     rows = "\n".join(f"{np.rad2deg(t):.6f},{r:.12f}" for t, r in zip(THETA[::5], R))
     p = _write(tmp_path, "angle_deg,R\n" + rows + "\n")
-    assert main(["fit", str(p)]) == 0
+    assert main(["fit", str(p), "--no-cache"]) == 0
     out = capsys.readouterr().out
     assert "1.7000000" in out
     # without a wavelength column all rows are one curve (NaN wavelengths once made a curve per row)
     assert f"{R.size} points in 1 curve(s)" in out and out.count("1.7000000") == 1
     assert len(jo.load_reflectance(p).curves()) == 1
     bad = _write(tmp_path, "angle_deg,R\n10,0.04\n20,x\n", "bad.csv")
-    assert main(["fit", str(bad)]) == 2
+    assert main(["fit", str(bad), "--no-cache"]) == 2
     assert "bad.csv, line 3" in capsys.readouterr().err
 
 
@@ -350,7 +350,7 @@ def test_cli_reports_an_index_the_data_cannot_exclude(capsys, tmp_path):
     R = np.asarray(jo.synthetic_reflectance(jax.random.PRNGKey(0), jnp.linspace(1.2, 4.0, 400), theta, noise=1e-3))[0]
     rows = "\n".join(f"{np.rad2deg(t):.8f},{r:.10f}" for t, r in zip(np.asarray(theta), R))
     p = _write(tmp_path, "angle_deg,R\n" + rows + "\n", "small_angles.csv")
-    assert main(["fit", str(p)]) == 0
+    assert main(["fit", str(p), "--no-cache"]) == 0
     out = capsys.readouterr().out
     note = [l for l in out.splitlines() if "fits these data almost as well" in l]
     assert len(note) == 1, out
