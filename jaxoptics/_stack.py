@@ -44,7 +44,8 @@ and the stack is the product of these applied to the field of the outgoing wave,
    entries above are even in ``k_z``, hence entire functions of ``q``: nothing is singular there.
 3. **Exact, finite derivatives.** Because the entries are entire in ``q``, their derivatives are
    given in closed form through a `jax.custom_jvp` (``d cos / dq = -a s / 2``, ``d s / dq =
-   (a cos - s) / (2 q)`` by its Taylor series where ``|a**2 q| < 1``), never through
+   (a cos - s) / (2 q)``, which cancels for small ``delta``; there ``s a**2 R(delta**2)`` with
+   ``R = (delta cot(delta) - 1) / (2 delta**2)`` by its power series), never through
    ``dk_z / dq = 1 / (2 k_z)``. The scale factor ``g`` is given a zero derivative: every output is
    invariant under rescaling a layer's matrix when the same factor multiplies the flux
    normalization, so the derivatives computed this way are the exact ones.
@@ -152,10 +153,31 @@ class Ellipsometry(NamedTuple):
 
 # ---- the layer's matrix entries, entire in q ---------------------------------------------------
 
-# |a^2 q| below this: d(sin(delta)/k_z)/dq by its Taylor series (8 terms: truncation below 1e-19
-# relative); above it the closed form (a c - s) / (2 q) cancels by at most 3 / |a^2 q| = 12 ulps
-_DS_SERIES_MAX = 0.25
+# |a^2 q| below this: d s/dq = s a^2 R(a^2 q) with R by its power series (8 terms: truncation
+# below 1e-17 relative, the series converging for |a^2 q| < pi^2); above it the closed form
+# (a c - s) / (2 q) cancels by at most 3 / |a^2 q| = 48 ulps
+_DS_SERIES_MAX = 1 / 16
 _DS_SERIES_TERMS = 8
+
+
+def _bernoulli_even(m):
+    """B_0, B_2, ..., B_2m as exact fractions (Akiyama-Tanigawa)."""
+    from fractions import Fraction
+
+    out, a = [], []
+    for n in range(2 * m + 1):
+        a.append(Fraction(1, n + 1))
+        for j in range(n, 0, -1):
+            a[j - 1] = j * (a[j - 1] - a[j])
+        if n % 2 == 0:
+            out.append(a[0])
+    return out
+
+
+# R(x) = (delta cot(delta) - 1) / (2 delta^2), x = delta^2: the coefficients of x^(n-1), n >= 1,
+# from delta cot(delta) = sum_n (-1)^n 2^(2n) B_2n delta^(2n) / (2n)!
+_R_COEFFS = tuple(float((-1) ** n * 2 ** (2 * n) * b / (2 * math.factorial(2 * n)))
+                  for n, b in enumerate(_bernoulli_even(_DS_SERIES_TERMS)) if n >= 1)
 
 
 def _exprel_from(e, z):
@@ -231,17 +253,15 @@ def _decaying_root(q):
     return jax.lax.complex(re, im)
 
 
-def _principal_root(w):
-    """The principal square root (Re >= 0) of w, written out as `_decaying_root`."""
-    r = _decaying_root(w)
-    return jnp.where(jnp.real(r) < 0, -r, r)
-
-
 def _ds_dq_series(x):
-    """sum_{n>=1} (-1)^n n x^(n-1) / (2n+1)!  (x = delta^2), so d s/dq = a^3 times this."""
+    """R(x) = (delta cot(delta) - 1) / (2 delta^2) with x = delta^2, by its series: d s/dq = s a^2 R.
+
+    (With g held constant, s = g a sin(delta)/delta and d s/dq = g a^3 (delta cos(delta) -
+    sin(delta)) / (2 delta^3); their ratio is a^2 R. So the derivative needs neither g nor a
+    division where the closed form cancels.)"""
     acc = jnp.zeros_like(x)
-    for n in range(_DS_SERIES_TERMS, 0, -1):
-        acc = acc * x + (-1) ** n * n / math.factorial(2 * n + 1)
+    for coef in reversed(_R_COEFFS):
+        acc = acc * x + coef
     return acc
 
 
@@ -269,11 +289,8 @@ def _layer_jvp(primals, tangents):
     x = a * a * q  # delta^2
     small = _abs2(x) < _DS_SERIES_MAX**2
     q_safe = jnp.where(small, 1, q)
-    # g = exp(i delta) is needed where |delta| < 1 only; there it is the principal root of
-    # g^2 = 1 + expm1(2 i delta) = 2 c - 1 (|arg g| < 1 < pi/2)
-    g = _principal_root(jnp.where(small, 2 * c - 1, 1))
     inv_2q = jnp.conj(q_safe) * (0.5 / _abs2(q_safe)).astype(q.dtype)  # 1 / (2q), one real division
-    ds_dq = jnp.where(small, g * a * a * a * _ds_dq_series(jnp.where(small, x, 0)), (a * c - s) * inv_2q)
+    ds_dq = jnp.where(small, s * (a * a) * _ds_dq_series(jnp.where(small, x, 0)), (a * c - s) * inv_2q)
     dc = -(0.5 * a * s) * dq - (q * s) * da
     ds = ds_dq * dq + c * da
     return (c, s), (dc, ds)
