@@ -520,7 +520,7 @@ def stack(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batch L-2"]
 
     Reference: Born & Wolf, sec. 1.6; Byrnes, arXiv:1603.02720.
     """
-    n, d, wavelength, cos_i, inc, dt, batch = _prepare(n, d, wavelength, cos_i, incoherent)
+    n, d, wavelength, cos_i, inc, _, batch = _prepare(n, d, wavelength, cos_i, incoherent)
     return _chunked(lambda *args: _stack(*args, inc), (n, d, wavelength, cos_i), batch)
 
 
@@ -550,22 +550,23 @@ def _chunked(f, args, batch):
         return f(*args)
     nb = -(-N // _BLOCK)
     nr = len(batch)
-    mapped, shared = [], []
+    # per argument: its blocks (nb, _BLOCK, ...), or None where it has one point and is passed whole
+    blocks = []
     for x in args:
         core = x.shape[nr:]
         if math.prod(x.shape[:nr]) == 1:
-            shared.append(x.reshape((1,) + core))
-            mapped.append(None)
+            blocks.append(None)
         else:
             x = jnp.broadcast_to(x, batch + core).reshape((N,) + core)
             x = jnp.concatenate([x, jnp.broadcast_to(x[-1:], (nb * _BLOCK - N,) + core)], axis=0)
-            mapped.append(x.reshape((nb, _BLOCK) + core))
-            shared.append(None)
+            blocks.append(x.reshape((nb, _BLOCK) + core))
+    mapped = [b for b in blocks if b is not None]
 
     def block(xs):
-        return f(*(s if m is None else x for s, m, x in zip(shared, mapped, xs)))
+        it = iter(xs)
+        return f(*(x.reshape((1,) + x.shape[nr:]) if b is None else next(it) for x, b in zip(args, blocks)))
 
-    out = jax.lax.map(jax.checkpoint(block), [m if m is not None else jnp.zeros((nb,), jnp.int8) for m in mapped])
+    out = jax.lax.map(jax.checkpoint(block), mapped)
     unblock = lambda y: y.reshape((nb * _BLOCK,) + y.shape[2:])[:N].reshape(batch + y.shape[2:])
     return jax.tree.map(unblock, out)
 
