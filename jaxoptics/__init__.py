@@ -5,7 +5,7 @@ from, `eta2` the medium it enters (complex `n + ik`, `k >= 0`, where allowed); a
 vectors `(..., 3)`; dtype follows the inputs.
 
 The fitting names (`fit_eta`, `FitResult`, `OneColumnLeastSquares`, `fit_dispersion`,
-`DispersionFit`) are imported on first use: they need optimistix, equinox and lineax, which a
+`DispersionFit`, `fit_stack`, `StackFit`) are imported on first use: they need optimistix, equinox and lineax, which a
 program that only calls the kernels does not load.
 """
 
@@ -39,6 +39,28 @@ from ._interface import InterfaceSpec as InterfaceSpec
 from ._interface import SceneSpec as SceneSpec
 from ._interface import interface as interface
 from ._interface import scene_interface as scene_interface
+from ._dispersion import Cauchy as Cauchy
+from ._dispersion import Constant as Constant
+from ._dispersion import Dispersion as Dispersion
+from ._dispersion import Drude as Drude
+from ._dispersion import DrudeLorentz as DrudeLorentz
+from ._dispersion import Free as Free
+from ._dispersion import Lorentz as Lorentz
+from ._dispersion import Sellmeier as Sellmeier
+from ._dispersion import Tabulated as Tabulated
+from ._dispersion import TaucLorentz as TaucLorentz
+from ._rii import RIIFormula as RIIFormula
+from ._rii import builtin_materials as builtin_materials
+from ._rii import load_rii_yaml as load_rii_yaml
+from ._rii import material as material
+from ._rii import rii_material as rii_material
+from ._sample import Layer as Layer
+from ._sample import Sample as Sample
+from ._spectra import KINDS as KINDS
+from ._spectra import Spectra as Spectra
+from ._spectra import load_spectra as load_spectra
+from ._spectra import make_spectra as make_spectra
+from ._spectra import save_spectra as save_spectra
 from ._materials import MATERIALS as MATERIALS
 from ._materials import Material as Material
 from ._materials import cauchy as cauchy
@@ -59,6 +81,8 @@ _LAZY = {
     "OneColumnLeastSquares": "._fit_solver",
     "fit_dispersion": "._dispersion_fit",
     "DispersionFit": "._dispersion_fit",
+    "fit_stack": "._stack_fit",
+    "StackFit": "._stack_fit",
 }
 if _typing.TYPE_CHECKING:
     from ._fit import fit_eta as fit_eta
@@ -66,6 +90,8 @@ if _typing.TYPE_CHECKING:
     from ._fit_solver import OneColumnLeastSquares as OneColumnLeastSquares
     from ._dispersion_fit import DispersionFit as DispersionFit
     from ._dispersion_fit import fit_dispersion as fit_dispersion
+    from ._stack_fit import StackFit as StackFit
+    from ._stack_fit import fit_stack as fit_stack
 
 
 def __getattr__(name):

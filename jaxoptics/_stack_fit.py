@@ -1,0 +1,372 @@
+"""Fit the free parameters of a layered `Sample` to measured `Spectra`: one spectrum or a whole
+map in one compiled call.
+
+The method, per spectrum:
+
+1. **Global start over thickness.** Reflectance and ellipsometric angles are periodic in each
+   film's optical thickness, so a local solver started one fringe away converges to a wrong
+   minimum with a good-looking fit. Every free thickness with a finite upper bound is searched on
+   a grid from its lower to its upper bound, with a step of `1/8` of the shortest fringe period
+   `lambda_min / (2 n_max)` (`n_max` the film's largest start index over the data), so that a
+   grid point lies well inside the basin of the true minimum; the other free parameters sit at
+   their starts. The grid is evaluated in one batched pass over all spectra, on a subset of the
+   wavelengths that still samples the fringes of the thickest film at least four times per
+   period. Several free thicknesses are searched on their product grid, which is coarsened to at
+   most `max_grid` points.
+2. **Levenberg-Marquardt** (optimistix) from the `starts` best grid points, least squares
+   weighted by `sigma`; the lowest chi^2 wins. Bounds are kept by the usual change of variables
+   (`x = lo + (hi - lo)(1 + sin u)/2` for two bounds, `lo - 1 + sqrt(u^2 + 1)` for one, as MINUIT
+   and lmfit do).
+3. **Uncertainties** from the Jacobian of the weighted residuals in the physical parameters at
+   the solution: covariance `(J^T J)^-1`, inverted through the eigendecomposition of the
+   correlation-scaled matrix, with no truncation: a direction the data do not determine gets an
+   enormous standard error and correlations near +-1, never a small one. Without `sigma` the
+   residuals' own scatter sets the scale (`cov * chi2_reduced`); with `sigma`, `cov *
+   max(1, chi2_reduced)`.
+
+Without sigma columns, quantities are weighted by nominal standard deviations (`DEFAULT_SIGMA`:
+0.05 degrees for psi, 0.1 for delta, 0.002 for N, C, S, R and T) so that mixed quantities have
+comparable weights; the overall scale is then estimated from the fit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ._sample import Sample
+from ._spectra import Spectra
+
+# Gauss-Newton steps before a spectrum is handed to Levenberg-Marquardt; spectra per LM round
+_GN_STEPS = 40
+_RETRY_BLOCK = 64
+_FIRST_BLOCK = 64
+DEFAULT_SIGMA = {"psi_deg": 0.05, "delta_deg": 0.1, "N": 0.002, "C": 0.002, "S": 0.002,
+                 "R": 0.002, "R_s": 0.002, "R_p": 0.002, "T": 0.002, "T_s": 0.002, "T_p": 0.002}
+
+
+class StackFit(eqx.Module):
+    """Result of `fit_stack`: a pytree over the map's sites (leading axes `(...)`, the spectra's
+    batch shape; `()` for one spectrum).
+
+    **Fields:**
+
+    - `names`: the free parameters, e.g. `("oxide.thickness_nm", "oxide.A")` (static).
+    - `values`, `stderr`: `(..., p)`, the fitted values and their standard errors.
+    - `covariance`, `correlation`: `(..., p, p)`.
+    - `chi2_reduced`: `(...)`, `sum(r^2) / (m - p)` of the sigma-weighted residuals `r`.
+    - `converged`: `(...)` bool, the solver met its tolerances within `max_steps` and every
+      value is finite.
+    - `at_bound`: `(..., p)` bool, a value within `1e-6` (relative to its range) of a bound:
+      its standard error describes the curvature there, not a confidence interval.
+    - `num_steps`: `(...)`, Levenberg-Marquardt steps of the winning start.
+    - `sigma_given`: whether the data carried sigma (static).
+
+    `fit["oxide.thickness_nm"]` is the value of one parameter; `fit.stderr_of(name)` its error;
+    `fit.table()` a text table (one site: the first, or `site=i`).
+    """
+
+    names: tuple = eqx.field(static=True)
+    values: jax.Array
+    stderr: jax.Array
+    covariance: jax.Array
+    correlation: jax.Array
+    chi2_reduced: jax.Array
+    converged: jax.Array
+    at_bound: jax.Array
+    num_steps: jax.Array
+    sigma_given: bool = eqx.field(static=True)
+
+    def _index(self, name):
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise KeyError(f"{name!r} is not a free parameter; free: {', '.join(self.names)}") from None
+
+    def __getitem__(self, name):
+        return self.values[..., self._index(name)]
+
+    def stderr_of(self, name):
+        return self.stderr[..., self._index(name)]
+
+    def table(self, site=None) -> str:
+        """A text table of values, standard errors and flags for one site."""
+        sl = (lambda a: a) if self.values.ndim == 1 else (lambda a: np.asarray(a).reshape((-1,) + a.shape[self.values.ndim - 1:])[site or 0])
+        v, s, b = (np.asarray(sl(x)) for x in (self.values, self.stderr, self.at_bound))
+        w = max(len(n) for n in self.names)
+        rows = [f"{'parameter':<{w}}  {'value':>14}  {'stderr':>12}"]
+        for i, n in enumerate(self.names):
+            rows.append(f"{n:<{w}}  {v[i]:>14.6g}  {s[i]:>12.3g}" + ("  (at a bound)" if b[i] else ""))
+        chi = float(np.asarray(sl(self.chi2_reduced[..., None]))[0])
+        conv = bool(np.asarray(sl(self.converged[..., None]))[0])
+        rows.append(f"chi2_reduced {chi:.4g}; converged {conv}; sigma {'from the data' if self.sigma_given else 'estimated from the fit'}")
+        return "\n".join(rows)
+
+
+# ---- bounds: x(u) and its inverse -------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class _Bound:
+    lo: float
+    hi: float
+
+    def x(self, u):
+        lo, hi = self.lo, self.hi
+        if math.isfinite(lo) and math.isfinite(hi):
+            return lo + (hi - lo) * (1 + jnp.sin(u)) / 2
+        if math.isfinite(lo):
+            return lo - 1 + jnp.sqrt(u * u + 1)
+        if math.isfinite(hi):
+            return hi + 1 - jnp.sqrt(u * u + 1)
+        return u
+
+    def u(self, x):
+        lo, hi = self.lo, self.hi
+        if math.isfinite(lo) and math.isfinite(hi):
+            return jnp.arcsin(jnp.clip(2 * (x - lo) / (hi - lo) - 1, -1, 1))
+        if math.isfinite(lo):
+            return jnp.sqrt(jnp.maximum((x - lo + 1) ** 2 - 1, 0))
+        if math.isfinite(hi):
+            return jnp.sqrt(jnp.maximum((hi - x + 1) ** 2 - 1, 0))
+        return x
+
+
+def _wrap_deg(d):
+    return jnp.mod(d + 180, 360) - 180
+
+
+def _check_ranges(sample: Sample, spectra: Spectra):
+    lam_um = np.asarray(spectra.wavelength_nm) / 1000
+    for owner, model in sample._slots():
+        tab = type(model).__name__ == "Tabulated" or getattr(model, "k_table", None) is not None
+        rng = getattr(model, "range_um", None)
+        if tab and rng is not None and (lam_um.min() < rng[0] - 1e-12 or lam_um.max() > rng[1] + 1e-12):
+            raise ValueError(f"{owner}: the material's tabulated data cover {rng[0] * 1000:g}-{rng[1] * 1000:g} nm, "
+                             f"the spectra {lam_um.min() * 1000:g}-{lam_um.max() * 1000:g} nm; tabulated data are not extrapolated")
+
+
+def _grid_subset(wl_nm, n_max, d_max):
+    """Indices of a subset of points whose wavenumbers sample the fringes of a film of optical
+    thickness `n_max * d_max` at least four times per period (all angles of a kept wavelength)."""
+    sigma = 1 / np.asarray(wl_nm)
+    period = 1 / (2 * n_max * max(d_max, 1e-9))
+    uniq = np.unique(sigma)[::-1]
+    kept, last = [], None
+    for s in uniq:
+        if last is None or last - s >= period / 4:
+            kept.append(s)
+            last = s
+    kept = np.asarray(kept)
+    return np.flatnonzero(np.isin(sigma, kept))
+
+
+def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, starts: int = 1,
+              max_grid: int = 4096, max_steps: int = 200, dtype=None) -> StackFit:
+    """Fit the `Free` parameters of `sample` to `spectra` (one spectrum or a map of them).
+
+    **Arguments:**
+
+    - `sample`: a `Sample` with at least one `Free` parameter.
+    - `spectra`: `Spectra` (`load_spectra`, `make_spectra`); leading axes of its values are
+      map sites, all fitted in one compiled call.
+    - `global_start`: search each free thickness with a finite upper bound on a grid first (see
+      the module docstring); `False` starts from the `Free` values.
+    - `starts`: how many of the best grid points to refine; the lowest chi^2 wins.
+    - `max_grid`: the most grid points per spectrum (several free thicknesses share this budget).
+    - `max_steps`: Levenberg-Marquardt steps per start.
+    - `dtype`: `float64` (default when `jax_enable_x64` is on) or `float32`.
+
+    **Returns:** a `StackFit`.
+
+    Raises `ValueError` before compiling when the sample has no free parameter, a tabulated
+    material does not cover the data's wavelengths, or there are fewer data than parameters.
+    """
+    if not isinstance(sample, Sample):
+        raise ValueError(f"sample must be a Sample, got {type(sample).__name__}")
+    if not isinstance(spectra, Spectra):
+        raise ValueError(f"spectra must be Spectra (load_spectra, make_spectra), got {type(spectra).__name__}")
+    free = sample.free()
+    if not free:
+        raise ValueError("the sample has no Free parameter to fit")
+    _check_ranges(sample, spectra)
+    kinds = spectra.kinds
+    Q, P = len(kinds), spectra.wavelength_nm.shape[0]
+    p = len(free)
+    if Q * P <= p:
+        raise ValueError(f"{Q * P} data for {p} free parameters: a fit needs more data than parameters")
+    dtype = dtype or (jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+    batch = spectra.values.shape[:-2]
+    B = math.prod(batch)
+    V = jnp.asarray(spectra.values.reshape((B, Q, P)), dtype)
+    sigma_given = spectra.sigma is not None
+    if sigma_given:
+        S = jnp.asarray(spectra.sigma.reshape((B, Q, P)), dtype)
+    else:
+        S = jnp.broadcast_to(jnp.asarray([DEFAULT_SIGMA[k] for k in kinds], dtype)[:, None], (B, Q, P))
+    wl = jnp.asarray(spectra.wavelength_nm, dtype)
+    ang = jnp.asarray(np.deg2rad(spectra.angle_deg), dtype)
+    is_delta = np.asarray([k == "delta_deg" for k in kinds])
+    has_delta = bool(is_delta.any())
+    bounds = [_Bound(f.lower, f.upper) for f in free]
+    x0 = np.asarray([f.value for f in free], np.float64)
+
+    def residuals_x(x, wl, ang, V, S):
+        """Weighted residuals, quantity after quantity (`V`, `S` flattened the same way)."""
+        model = sample.with_values([x[i] for i in range(p)]).quantities(kinds, wl, ang, flat=True)
+        diff = model - V
+        if has_delta:
+            diff = jnp.where(jnp.repeat(is_delta, wl.shape[0]), _wrap_deg(diff), diff)
+        return diff / S
+
+    def to_x(u):
+        return jnp.stack([b.x(u[i]) for i, b in enumerate(bounds)])
+
+    def to_u(x):
+        return jnp.stack([b.u(x[i]) for i, b in enumerate(bounds)])
+
+    # grid over the free thicknesses with finite upper bounds
+    tidx = [i for i, f in enumerate(free) if f.is_thickness and math.isfinite(f.upper)] if global_start else []
+    grid = None
+    sub = np.arange(P)
+    if tidx:
+        fixed = sample.fixed()
+        lam = np.asarray(spectra.wavelength_nm)
+        axes = []
+        nmax_all = 1.0
+        for i in tidx:
+            layer_name = free[i].name.rsplit(".", 1)[0]
+            li = sample.layer_names.index(layer_name)
+            N = np.asarray(fixed.layers[li].material.nk(jnp.asarray(lam / 1000, jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)))
+            nmax = float(np.nanmax(np.abs(N))) if np.any(np.isfinite(N)) else 2.0
+            nmax_all = max(nmax_all, nmax)
+            step = lam.min() / (2 * nmax) / 8
+            axes.append((free[i].lower, free[i].upper, step))
+        counts = [max(2, int(math.ceil((hi - lo) / st)) + 1) for lo, hi, st in axes]
+        while math.prod(counts) > max_grid:
+            j = int(np.argmax(counts))
+            counts[j] = max(2, counts[j] * 3 // 4)
+        pts = np.meshgrid(*[np.linspace(lo, hi, c) for (lo, hi, _), c in zip(axes, counts)], indexing="ij")
+        G = np.stack([g.reshape(-1) for g in pts], -1)  # (n_grid, len(tidx))
+        grid = np.broadcast_to(x0, (G.shape[0], p)).copy()
+        grid[:, tidx] = G
+        # keep the starts of the thicknesses strictly inside their bounds
+        for k, i in enumerate(tidx):
+            lo, hi = free[i].lower, free[i].upper
+            eps = 1e-6 * (hi - lo)
+            grid[:, i] = np.clip(grid[:, i], lo + eps, hi - eps)
+        dmax = sum(free[i].upper for i in tidx)
+        sub = _grid_subset(lam, nmax_all, dmax)
+    starts = max(1, min(int(starts), 1 if grid is None else grid.shape[0]))
+
+    tol = _tol(dtype)
+    gn = optx.GaussNewton(rtol=tol, atol=tol)
+    lm = optx.LevenbergMarquardt(rtol=tol, atol=tol)
+
+    def solve(solver, steps_max, u0, Vb, Sb):
+        fn = lambda u, args: residuals_x(to_x(u), wl, ang, Vb, Sb)
+        sol = optx.least_squares(fn, solver, u0, max_steps=steps_max, throw=False)
+        x = to_x(sol.value)
+        r = residuals_x(x, wl, ang, Vb, Sb)
+        c2 = jnp.sum(r * r)
+        c2 = jnp.where(jnp.isfinite(c2), c2, jnp.inf)
+        ok = (sol.result == optx.RESULTS.successful) & jnp.isfinite(c2)
+        return x, c2, ok, sol.stats["num_steps"]
+
+    def first(Vb, Sb):
+        """Grid start, then Gauss-Newton from the `starts` best grid points."""
+        if grid is None:
+            u0s = to_u(jnp.asarray(x0, dtype))[None]
+        else:
+            g = jnp.asarray(grid, dtype)
+            nsub = len(sub)
+            Vs = Vb.reshape(Q, P)[:, sub].reshape(-1)
+            Ss = Sb.reshape(Q, P)[:, sub].reshape(-1)
+            cost = jax.vmap(lambda x: jnp.sum(residuals_x(x, wl[sub], ang[sub], Vs, Ss) ** 2))(g)
+            del nsub
+            cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+            u0s = jax.vmap(to_u)(g[jnp.argsort(cost)[:starts]])
+        xs, c2, ok, steps = jax.vmap(lambda u0: solve(gn, _GN_STEPS, u0, Vb, Sb))(u0s)
+        k = jnp.argmin(jnp.where(ok, c2, jnp.inf))
+        return xs[k], c2[k], ok[k], steps[k], u0s
+
+    def retry(x, c2, ok, steps, u0s, Vb, Sb):
+        """Levenberg-Marquardt from the same starts, for a spectrum Gauss-Newton did not fit."""
+        xs2, c22, ok2, st2 = jax.vmap(lambda u0: solve(lm, max_steps, u0, Vb, Sb))(u0s)
+        k = jnp.argmin(jnp.where(ok2, c22, jnp.inf))
+        better = ok2[k] & (~ok | (c22[k] < c2))
+        return (jnp.where(better, xs2[k], x), jnp.where(better, c22[k], c2), ok | ok2[k], steps + st2[k])
+
+    def errors(x, c2, ok, Vb, Sb):
+        J = jax.jacfwd(lambda x: residuals_x(x, wl, ang, Vb, Sb))(x)
+        m = J.shape[0]
+        chi2r = c2 / (m - p)
+        A = J.T @ J
+        dg = jnp.sqrt(jnp.diag(A))
+        dsafe = jnp.where(dg > 0, dg, 1)
+        # invert the correlation-scaled normal matrix through its eigendecomposition, without
+        # truncation: an undetermined direction gets a huge variance, never a small one
+        lam_, vec = jnp.linalg.eigh(A / dsafe[:, None] / dsafe[None, :])
+        tiny = jnp.finfo(dtype).eps ** 2 * jnp.maximum(jnp.max(lam_), jnp.finfo(dtype).tiny)
+        cov = (vec / jnp.maximum(lam_, tiny)) @ vec.T / dsafe[:, None] / dsafe[None, :]
+        cov = jnp.where((dg[:, None] > 0) & (dg[None, :] > 0), cov, jnp.where(jnp.eye(p, dtype=bool), jnp.inf, 0))
+        cov = cov * (jnp.maximum(chi2r, 1) if sigma_given else chi2r)
+        sd = jnp.sqrt(jnp.abs(jnp.diag(cov)))
+        sdsafe = jnp.where(jnp.isfinite(sd) & (sd > 0), sd, 1)
+        corr = cov / sdsafe[:, None] / sdsafe[None, :]
+        lo = jnp.asarray([f.lower for f in free], dtype)
+        hi = jnp.asarray([f.upper for f in free], dtype)
+        span = jnp.where(jnp.isfinite(hi - lo), hi - lo, jnp.maximum(jnp.abs(x), 1))
+        at_b = (jnp.abs(x - lo) <= 1e-6 * span) | (jnp.abs(hi - x) <= 1e-6 * span)
+        conv = ok & jnp.all(jnp.isfinite(x)) & jnp.isfinite(chi2r)
+        return sd, cov, corr, chi2r, conv, at_b
+
+    K = min(B, _RETRY_BLOCK)
+
+    def run(V, S):
+        V, S = V.reshape(B, -1), S.reshape(B, -1)
+        x, c2, ok, steps, u0s = _blocked(jax.vmap(first), (V, S), _FIRST_BLOCK)
+
+        # Levenberg-Marquardt for the spectra Gauss-Newton left unconverged, K at a time (the
+        # pending ones gathered to the front), so that its cost follows the number of failures
+        def body(carry):
+            x, c2, ok, steps, pending = carry
+            idx = jnp.argsort(~pending, stable=True)[:K]
+            sel = pending[idx]
+            nx, nc, nok, nst = jax.vmap(retry)(x[idx], c2[idx], ok[idx], steps[idx], u0s[idx], V[idx], S[idx])
+            upd = lambda a, b: a.at[idx].set(jnp.where(sel.reshape((-1,) + (1,) * (b.ndim - 1)), b, a[idx]))
+            return upd(x, nx), upd(c2, nc), upd(ok, nok), upd(steps, nst), pending.at[idx].set(False)
+
+        x, c2, ok, steps, _ = jax.lax.while_loop(lambda c: jnp.any(c[-1]), body, (x, c2, ok, steps, ~ok))
+        sd, cov, corr, chi2r, conv, at_b = _blocked(jax.vmap(errors), (x, c2, ok, V, S), _FIRST_BLOCK)
+        return x, sd, cov, corr, chi2r, conv, at_b, steps
+
+    run = jax.jit(run)
+    x, sd, cov, corr, chi2r, conv, at_b, steps = run(V, S)
+    shp = lambda a: a.reshape(batch + a.shape[1:])
+    return StackFit(tuple(f.name for f in free), shp(x), shp(sd), shp(cov), shp(corr), shp(chi2r), shp(conv),
+                    shp(at_b), shp(steps), sigma_given)
+
+
+def _blocked(f, args, size):
+    """`f` (batched over the leading axis) over blocks of `size` along that axis, one block after
+    another (`lax.map`); the last block is padded by repeating the final element. Each block's
+    intermediate arrays (a few spectra x all their points) then stay in the CPU's caches, where
+    the whole batch at once would stream every linearization residual through memory."""
+    B = args[0].shape[0]
+    if B <= size:
+        return f(*args)
+    nb = -(-B // size)
+    pad = lambda a: jnp.concatenate([a, jnp.broadcast_to(a[-1:], (nb * size - B,) + a.shape[1:])]).reshape((nb, size) + a.shape[1:])
+    out = jax.lax.map(lambda xs: f(*xs), tuple(pad(a) for a in args))
+    return jax.tree.map(lambda y: y.reshape((nb * size,) + y.shape[2:])[:B], out)
+
+
+def _tol(dtype):
+    return max(1e-9, 100 * float(jnp.finfo(dtype).eps))
