@@ -314,7 +314,7 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
         # truncation: an undetermined direction gets a huge variance, never a small one
         lam_, vec = jnp.linalg.eigh(A / dsafe[:, None] / dsafe[None, :])
         tiny = jnp.finfo(dtype).eps ** 2 * jnp.maximum(jnp.max(lam_), jnp.finfo(dtype).tiny)
-        cov = (vec / jnp.maximum(lam_, tiny)) @ vec.T / dsafe[:, None] / dsafe[None, :]
+        cov = (vec / jnp.maximum(lam_, tiny)[None, :]) @ vec.T / dsafe[:, None] / dsafe[None, :]
         cov = jnp.where((dg[:, None] > 0) & (dg[None, :] > 0), cov, jnp.where(jnp.eye(p, dtype=bool), jnp.inf, 0))
         cov = cov * (jnp.maximum(chi2r, 1) if sigma_given else chi2r)
         sd = jnp.sqrt(jnp.abs(jnp.diag(cov)))

@@ -1,0 +1,212 @@
+"""Layered-sample fits: the measured quantities against tmm, recovery of known parameters from
+tmm-generated spectra with noise, calibrated standard errors, honest reports of what the data do
+not determine, and the spectra files."""
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import tmm
+
+import jaxoptics as jo
+
+WL = np.linspace(300.0, 1000.0, 100)
+ANGLES = (65.0, 70.0, 75.0)
+OXIDE = dict(A=1.452, B=0.0036)
+
+
+def grid():
+    return np.tile(WL, len(ANGLES)), np.repeat(ANGLES, len(WL))
+
+
+def tmm_quantities(film_n, d_nm, wl, ang, substrate="Si"):
+    """psi/delta (instrument convention: Delta = 180 - tmm's Delta) and R_s, R_p with tmm, one point
+    at a time; indices from the materials (tested separately against their sources)."""
+    sub = np.asarray(jo.material(substrate).nk(jnp.asarray(wl / 1000)))
+    psi, delta, Rs, Rp = [], [], [], []
+    for i in range(len(wl)):
+        n = [1.0, film_n[i], sub[i]]
+        th = math.radians(ang[i])
+        e = tmm.ellips(n, [np.inf, d_nm, np.inf], th, wl[i])
+        psi.append(math.degrees(e["psi"]))
+        delta.append((180 - math.degrees(e["Delta"]) + 180) % 360 - 180)
+        Rs.append(tmm.coh_tmm("s", n, [np.inf, d_nm, np.inf], th, wl[i])["R"])
+        Rp.append(tmm.coh_tmm("p", n, [np.inf, d_nm, np.inf], th, wl[i])["R"])
+    return np.array(psi), np.array(delta), np.array(Rs), np.array(Rp)
+
+
+def cauchy_n(wl, A, B):
+    return A + B / (wl / 1000) ** 2
+
+
+def test_quantities_agree_with_tmm_and_with_each_other():
+    wl, ang = grid()
+    sample = jo.Sample([jo.Layer(jo.Cauchy(**OXIDE), 480.0)], jo.material("Si"))
+    kinds = ("psi_deg", "delta_deg", "R_s", "R_p", "N", "C", "S", "R")
+    q = np.asarray(sample.fixed().quantities(kinds, jnp.asarray(wl), jnp.asarray(np.radians(ang))))
+    psi, delta, Rs, Rp = tmm_quantities(cauchy_n(wl, **OXIDE), 480.0, wl, ang)
+    np.testing.assert_allclose(q[0], psi, atol=1e-10)
+    np.testing.assert_allclose((q[1] - delta + 180) % 360 - 180, 0, atol=1e-9)
+    np.testing.assert_allclose(q[2], Rs, atol=1e-13)
+    np.testing.assert_allclose(q[3], Rp, atol=1e-13)
+    p, dl = np.radians(psi), np.radians(delta)
+    np.testing.assert_allclose(q[4], np.cos(2 * p), atol=1e-12)
+    np.testing.assert_allclose(q[5], np.sin(2 * p) * np.cos(dl), atol=1e-12)
+    np.testing.assert_allclose(q[6], np.sin(2 * p) * np.sin(dl), atol=1e-12)
+    np.testing.assert_allclose(q[7], (Rs + Rp) / 2, atol=1e-13)
+    # an absorbing substrate in the instrument convention has 0 < Delta < 180 (S > 0)
+    bare = jo.Sample([], jo.material("Au"))
+    qb = np.asarray(bare.fixed().quantities(("delta_deg", "S"), jnp.asarray(wl), jnp.asarray(np.radians(ang))))
+    assert np.all((qb[0] > 0) & (qb[0] < 180)) and np.all(qb[1] > 0)
+
+
+def test_incoherent_layer_against_tmm():
+    """A 1 mm glass slab (incoherent) on a coated back face, unpolarized R against tmm's inc_tmm."""
+    wl = np.linspace(400.0, 800.0, 9)
+    ang = np.full_like(wl, 30.0)
+    sample = jo.Sample([jo.Layer(1.5, 1e6, incoherent=True), jo.Layer(jo.Cauchy(2.0, 0.01), 120.0)], 1.0)
+    q = np.asarray(sample.fixed().quantities(("R_s", "R_p"), jnp.asarray(wl), jnp.asarray(np.radians(ang))))
+    for i, w in enumerate(wl):
+        n = [1.0, 1.5, 2.0 + 0.01 / (w / 1000) ** 2, 1.0]
+        for j, pol in enumerate("sp"):
+            ref = tmm.inc_tmm(pol, n, [np.inf, 1e6, 120.0, np.inf], ["i", "i", "c", "i"], math.radians(30), w)["R"]
+            assert q[j, i] == pytest.approx(ref, abs=1e-12)
+
+
+def _spectra(d_true, seed, sigma=(0.02, 0.05)):
+    """psi/delta from tmm for films of thicknesses `d_true` (a map), with Gaussian noise."""
+    wl, ang = grid()
+    rng = np.random.default_rng(seed)
+    vals = []
+    for d in np.atleast_1d(d_true):
+        psi, delta, _, _ = tmm_quantities(cauchy_n(wl, **OXIDE), float(d), wl, ang)
+        vals.append((psi + sigma[0] * rng.normal(size=psi.shape), delta + sigma[1] * rng.normal(size=psi.shape)))
+    V = np.asarray(vals)
+    return jo.make_spectra(wl, ang, {"psi_deg": V[:, 0], "delta_deg": V[:, 1]},
+                           {"psi_deg": np.full(V[:, 0].shape, sigma[0]), "delta_deg": np.full(V[:, 0].shape, sigma[1])})
+
+
+def _model(d0=1000.0):
+    return jo.Sample([jo.Layer(jo.Cauchy(A=jo.Free(1.5, 1.3, 1.8), B=jo.Free(0.0, -0.05, 0.05)),
+                               jo.Free(d0, 0.0, 2100.0), name="oxide")], jo.material("Si"))
+
+
+def test_recovers_thickness_from_far_starts():
+    """Films from 5 nm to 2000 nm, one start (1000 nm) for all: the grid start finds each one's
+    fringe, so no fit lands in a neighbouring minimum."""
+    d_true = np.array([5.0, 20.0, 80.0, 250.0, 520.0, 1100.0, 1600.0, 2000.0])
+    fit = jo.fit_stack(_model(), _spectra(d_true, seed=1))
+    d, sd = np.asarray(fit["oxide.thickness_nm"]), np.asarray(fit.stderr_of("oxide.thickness_nm"))
+    assert np.all(np.asarray(fit.converged))
+    assert np.all(np.abs(d - d_true) < 4 * sd + 1e-6), (d, d_true, sd)
+    A = np.asarray(fit["oxide.A"])
+    assert np.all(np.abs(A - OXIDE["A"]) < 4 * np.asarray(fit.stderr_of("oxide.A")))
+    assert np.all(np.abs(np.asarray(fit.chi2_reduced) - 1) < 0.25)
+    # without the grid, a start 1000 nm away lands in a wrong fringe: the test above is not vacuous
+    nogrid = jo.fit_stack(_model(), _spectra(np.array([250.0]), seed=1), global_start=False)
+    assert abs(float(nogrid["oxide.thickness_nm"][0]) - 250.0) > 1.0
+    assert float(nogrid.chi2_reduced[0]) > 10
+
+
+def test_standard_errors_are_calibrated():
+    """Over 300 noise draws the spread of the fitted thickness and A over their mean standard
+    error lies in [0.8, 1.25]."""
+    fit = jo.fit_stack(_model(), _spectra(np.full(300, 480.0), seed=2))
+    assert np.all(np.asarray(fit.converged))
+    for name in ("oxide.thickness_nm", "oxide.A", "oxide.B"):
+        ratio = np.std(np.asarray(fit[name])) / np.mean(np.asarray(fit.stderr_of(name)))
+        assert 0.8 <= ratio <= 1.25, (name, ratio)
+
+
+def test_undetermined_parameters_are_reported_not_guessed():
+    """A 2 nm film's index and thickness are nearly interchangeable (only their product shows),
+    and the index of a layer of zero thickness has no effect at all: the fit reports a
+    correlation near 1 for the first pair and an enormous standard error for the second."""
+    sample = jo.Sample([jo.Layer(jo.Cauchy(A=jo.Free(1.5, 1.2, 2.2), B=0.0036), jo.Free(3.0, 0.0, 20.0), name="film"),
+                        jo.Layer(jo.Constant(n=jo.Free(1.7, 1.0, 3.0)), 0.0, name="ghost")], jo.material("Si"))
+    wl, ang = grid()
+    truth = jo.Sample([jo.Layer(jo.Cauchy(1.452, 0.0036), 2.0)], jo.material("Si")).fixed()
+    q = np.asarray(truth.quantities(("psi_deg", "delta_deg"), jnp.asarray(wl), jnp.asarray(np.radians(ang))))
+    rng = np.random.default_rng(3)
+    q = q + rng.normal(size=q.shape) * np.array([[0.02], [0.05]])
+    sp = jo.make_spectra(wl, ang, {"psi_deg": q[0], "delta_deg": q[1]},
+                         {"psi_deg": np.full(q[0].shape, 0.02), "delta_deg": np.full(q[0].shape, 0.05)})
+    fit = jo.fit_stack(sample, sp)
+    i, j, g = (fit.names.index(n) for n in ("film.A", "film.thickness_nm", "ghost.n"))
+    assert abs(float(fit.correlation[i, j])) > 0.95
+    assert float(fit.stderr[g]) > 1e6
+
+
+def test_mixed_quantities_without_sigma():
+    """R and psi/delta together, no sigma in the data: the scale comes from the residuals."""
+    wl, ang = grid()
+    truth = jo.Sample([jo.Layer(jo.Cauchy(**OXIDE), 700.0)], jo.material("Si")).fixed()
+    q = np.asarray(truth.quantities(("psi_deg", "delta_deg", "R"), jnp.asarray(wl), jnp.asarray(np.radians(ang))))
+    rng = np.random.default_rng(4)
+    noise = np.array([[0.01], [0.02], [0.0004]])
+    sp = jo.make_spectra(wl, ang, dict(zip(("psi_deg", "delta_deg", "R"), q + noise * rng.normal(size=q.shape))))
+    fit = jo.fit_stack(_model(300.0), sp)
+    assert not fit.sigma_given and bool(fit.converged)
+    assert float(fit["oxide.thickness_nm"]) == pytest.approx(700.0, abs=4 * float(fit.stderr_of("oxide.thickness_nm")))
+    assert "oxide.thickness_nm" in fit.table()
+
+
+def test_bad_input_is_refused_before_compiling():
+    sp = _spectra(np.array([100.0]), seed=0)
+    fixed = jo.Sample([jo.Layer(jo.Cauchy(**OXIDE), 100.0)], jo.material("Si"))
+    with pytest.raises(ValueError, match="no Free parameter"):
+        jo.fit_stack(fixed, sp)
+    gold = jo.Sample([jo.Layer(jo.Cauchy(**OXIDE), jo.Free(100.0, 0, 500))], jo.material("Au"))
+    wl = np.linspace(300.0, 2500.0, 20)
+    sp2 = jo.make_spectra(wl, 70.0, {"psi_deg": np.full(20, 30.0)})
+    with pytest.raises(ValueError, match="substrate: the material's tabulated data cover 187.9-1937 nm, the spectra 300-2500 nm"):
+        jo.fit_stack(gold, sp2)
+    with pytest.raises(ValueError, match="thickness start -1.0 nm is negative"):
+        jo.Layer(1.5, jo.Free(-1.0))
+    with pytest.raises(ValueError, match="k < 0"):
+        jo.Sample([], 1.5 - 0.1j)
+
+
+# ---- spectra files ----------------------------------------------------------------------------
+
+
+def test_spectra_round_trip_with_sites(tmp_path):
+    sp = _spectra(np.array([100.0, 200.0]), seed=5)
+    sp = sp._replace(sites=("a1", "b2"))
+    jo.save_spectra(tmp_path / "m.csv", sp)
+    back = jo.load_spectra(tmp_path / "m.csv")
+    assert back.sites == ("a1", "b2") and back.kinds == sp.kinds
+    np.testing.assert_array_equal(back.values, sp.values)
+    np.testing.assert_array_equal(back.sigma, sp.sigma)
+    np.testing.assert_array_equal(back.wavelength_nm, sp.wavelength_nm)
+
+
+def test_mueller_and_ncs_columns(tmp_path):
+    psi, delta = np.radians(30.0), np.radians(120.0)
+    N, C, S = np.cos(2 * psi), np.sin(2 * psi) * np.cos(delta), np.sin(2 * psi) * np.sin(delta)
+    rows = ["wavelength_um,angle_deg,m11,m12,m21,m33,m34,m43,m44"]
+    rows += [f"0.{5 + i},70,1,{-N},{-N},{C},{S},{-S},{C}" for i in range(3)]
+    (tmp_path / "mm.csv").write_text("\n".join(rows) + "\n")
+    sp = jo.load_spectra(tmp_path / "mm.csv")
+    assert sp.kinds == ("N", "C", "S")
+    np.testing.assert_allclose(sp.values[:, 0], [N, C, S], atol=1e-15)
+    np.testing.assert_allclose(sp.wavelength_nm, [500, 600, 700])
+
+
+@pytest.mark.parametrize("text,message", [
+    ("wavelength_nm,angle_deg,psi_deg\n500,70,30\n600,70,nan\n", r"line 3: column 3 \(psi_deg\) is NaN; rows with missing values are rejected"),
+    ("wavelength_nm,angle_deg,psi_deg\n500,70,30\n600,70,x\n", r"line 3: column 3 \(psi_deg\): 'x' is not a number"),
+    ("wavelength_nm,angle,psi_deg\n500,70,30\n", r"line 1: column 2 'angle' is not a known column \(did you mean angle_deg\?\)"),
+    ("wavelength_nm,angle_deg,R\n500,70,45\n", r"line 2: R = 45.0: reflectance and transmittance are fractions"),
+    ("wavelength_nm,angle_deg,psi_deg\n500,95,30\n", r"line 2: column 2 \(angle_deg\) = 95.0: must be in \[0, 90\)"),
+    ("wavelength_nm,angle_deg,psi_deg,sigma_psi_deg\n500,70,30,0\n", r"line 2: sigma of psi_deg = 0.0: must be positive"),
+    ("# comment\nwavelength_nm,angle_deg,psi_deg\n500,70\n", r"line 3: 2 cells, the header has 3"),
+    ("site,wavelength_nm,angle_deg,psi_deg\na,500,70,30\nb,600,70,30\n", r"line 3: site 'b' does not list the same"),
+    ("wavelength_nm,wavelength_um,angle_deg,psi_deg\n500,0.5,70,30\n", r"exactly one of the columns wavelength_nm, wavelength_um"),
+])
+def test_bad_spectra_files_name_line_and_column(tmp_path, text, message):
+    p = tmp_path / "bad.csv"
+    p.write_text(text)
+    with pytest.raises(ValueError, match=r"bad.csv, " + message if message.startswith("line") else message):
+        jo.load_spectra(p)
