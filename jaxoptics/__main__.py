@@ -5,6 +5,8 @@ Commands:
           critical and Brewster angles (a quick check that the install works).
   fit     fit the refractive index to reflectance-versus-angle data in a CSV file
           (`fit --example` uses the bundled N-BK7 measurement).
+  fit-stack  fit a layered sample (film thicknesses, n, k, dispersion) to spectroscopic data
+          (psi/delta, N/C/S, Mueller, R, T) with a TOML model (`fit-stack --example`: SiO2 on Si).
   bench   measure speed (and error) side by side on this machine; --quick for a short run.
   stress  numerical stress test of every kernel (10^6 inputs per dtype; values, gradients,
           invariants) against high-precision references.
@@ -147,6 +149,108 @@ def _fit(args) -> int:
     return 0
 
 
+def _fit_stack(args) -> int:
+    import jax
+    import numpy as np
+
+    _use_compilation_cache(args)
+    jax.config.update("jax_enable_x64", True)
+    import jaxoptics as jo
+    from jaxoptics._model_file import load_sample
+
+    if args.example == bool(args.data):
+        print("fit-stack: give a data file and --model, or --example", file=sys.stderr)
+        return 2
+    data_dir = Path(jo.__file__).parent / "data"
+    data_path = data_dir / "example_sio2_si.csv" if args.example else Path(args.data)
+    model_path = Path(args.model) if args.model else (data_dir / "example_sio2_si.toml" if args.example else None)
+    if model_path is None:
+        print("fit-stack: --model MODEL.toml is required (see `python -m jaxoptics fit-stack --help`)", file=sys.stderr)
+        return 2
+    try:
+        spectra = jo.load_spectra(data_path)
+        sample = load_sample(model_path)
+        print(f"jaxoptics fit-stack: {data_path} with model {model_path}")
+        nsites = int(np.prod(spectra.batch_shape)) if spectra.batch_shape else 1
+        print(f"{spectra.wavelength_nm.size} points ({spectra.wavelength_nm.min():g}-{spectra.wavelength_nm.max():g} nm, "
+              f"angles {', '.join(f'{a:g}' for a in np.unique(spectra.angle_deg))} deg) x {', '.join(spectra.kinds)}"
+              f"{f'; {nsites} sites' if spectra.batch_shape else ''}; "
+              f"errors {'from the sigma columns' if spectra.sigma is not None else 'scaled by the residual scatter'}")
+        fit = jo.fit_stack(sample, spectra, starts=args.starts)
+    except (ValueError, ImportError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if not spectra.batch_shape:
+        print(fit.table())
+        i = range(len(fit.names))
+        corr = np.asarray(fit.correlation)
+        strong = [(fit.names[a], fit.names[b], corr[a, b]) for a in i for b in i if a < b and abs(corr[a, b]) > 0.9]
+        for a, b, c in strong:
+            print(f"note: {a} and {b} are correlated ({c:+.3f}): the data determine a combination of them better than either")
+    else:
+        vals = np.asarray(fit.values).reshape(nsites, -1)
+        sds = np.asarray(fit.stderr).reshape(nsites, -1)
+        conv = np.asarray(fit.converged).reshape(nsites)
+        print(f"{'parameter':<24} {'mean':>14} {'std over sites':>15} {'median stderr':>14}")
+        for k, n in enumerate(fit.names):
+            print(f"{n:<24} {vals[:, k].mean():>14.6g} {vals[:, k].std():>15.3g} {np.median(sds[:, k]):>14.3g}")
+        print(f"converged at {int(conv.sum())} of {nsites} sites")
+        if args.out:
+            labels = spectra.sites or tuple(str(k) for k in range(nsites))
+            with open(args.out, "w", encoding="utf-8") as f:
+                f.write(",".join(["site"] + [x for n in fit.names for x in (n, f"stderr_{n}")] + ["chi2_reduced", "converged"]) + "\n")
+                chi = np.asarray(fit.chi2_reduced).reshape(nsites)
+                for s in range(nsites):
+                    cells = [labels[s]] + [repr(float(x)) for k in range(len(fit.names)) for x in (vals[s, k], sds[s, k])]
+                    f.write(",".join(cells + [repr(float(chi[s])), str(bool(conv[s]))]) + "\n")
+            print(f"per-site results written to {args.out}")
+    if not bool(np.all(np.asarray(fit.converged))):
+        print("warning: some fits did not converge", file=sys.stderr)
+    if args.plot:
+        _plot_stack_fit(sample, spectra, fit, args.plot, str(data_path))
+        print(f"plot saved to {args.plot}")
+    return 0
+
+
+def _plot_stack_fit(sample, spectra, fit, out, title):
+    import jax.numpy as jnp
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    site = 0
+    V = spectra.values.reshape((-1,) + spectra.values.shape[-2:])[site]
+    x = np.asarray(fit.values).reshape(-1, len(fit.names))[site]
+    model = np.asarray(sample.with_values([float(v) for v in x]).quantities(
+        spectra.kinds, jnp.asarray(spectra.wavelength_nm), jnp.asarray(np.radians(spectra.angle_deg))))
+    Q = len(spectra.kinds)
+    fig, axes = plt.subplots(2, Q, figsize=(5 * Q, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]}, squeeze=False)
+    for q, kind in enumerate(spectra.kinds):
+        resid = model[q] - V[q]
+        curve, shown = model[q], V[q]
+        if kind == "delta_deg":  # shown in [0, 360), the measurement on the model's branch
+            resid = (resid + 180) % 360 - 180
+            curve = curve % 360
+            shown = curve - resid
+        for a in np.unique(spectra.angle_deg):
+            m = spectra.angle_deg == a
+            line, = axes[0, q].plot(spectra.wavelength_nm[m], curve[m], lw=1.2, label=f"fit, {a:g} deg")
+            axes[0, q].plot(spectra.wavelength_nm[m], shown[m], ".", ms=2.5, color=line.get_color())
+            axes[1, q].plot(spectra.wavelength_nm[m], resid[m], ".", ms=2.5, color=line.get_color())
+        axes[0, q].set_ylabel(kind)
+        axes[1, q].set_ylabel("model - data")
+        axes[1, q].set_xlabel("wavelength (nm)")
+        axes[1, q].axhline(0, color="k", lw=0.5)
+    axes[0, 0].legend(fontsize=8)
+    params = ", ".join(f"{n} = {v:.5g}" for n, v in zip(fit.names, x))
+    fig.suptitle(f"{title}\n{params}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
 def _plot_fits(fits, args, title):
     import matplotlib
 
@@ -237,6 +341,17 @@ def main(argv=None) -> int:
                    help="do not keep compiled programs between runs (by default they are kept in "
                         "$JAXOPTICS_CACHE_DIR or ~/.cache/jaxoptics/xla; JAXOPTICS_CACHE_DIR=off turns it off)")
     p.set_defaults(func=_fit)
+    p = sub.add_parser("fit-stack", help="fit a layered sample to spectroscopic data (psi/delta, N/C/S, Mueller, R, T)")
+    p.add_argument("data", nargs="?", help="CSV with wavelength_nm|wavelength_um, angle_deg and measured columns "
+                   "(psi_deg, delta_deg, N, C, S, m11..m44, R, R_s, R_p, T, T_s, T_p; sigma_<column>; site for maps)")
+    p.add_argument("--model", metavar="MODEL.toml", help="the sample: layers, materials, free parameters (format: docs/layered-fits)")
+    p.add_argument("--example", action="store_true", help="the bundled example: psi/delta of a thermal SiO2 film on Si")
+    p.add_argument("--starts", type=int, default=1, help="grid points refined per spectrum (default 1)")
+    p.add_argument("--plot", metavar="OUT.png", help="save the measured and fitted spectra with residuals")
+    p.add_argument("--out", metavar="RESULTS.csv", help="per-site values and errors of a map")
+    p.add_argument("--no-cache", action="store_true", help="do not use the compilation cache (see `fit --help`)")
+    p.set_defaults(func=_fit_stack)
+
     p = sub.add_parser("bench", help="speed and error, side by side with peers, on this machine")
     p.add_argument("--quick", action="store_true", help="a reduced run (about a minute)")
     p.add_argument("--out", default="bench_out", help="directory for bench.md, bench.json and the charts")

@@ -210,3 +210,62 @@ def test_bad_spectra_files_name_line_and_column(tmp_path, text, message):
     p.write_text(text)
     with pytest.raises(ValueError, match=r"bad.csv, " + message if message.startswith("line") else message):
         jo.load_spectra(p)
+
+
+# ---- the model file and the command line -------------------------------------------------------
+
+
+def test_cli_fit_stack_example(capsys, tmp_path):
+    """The bundled example (made with tmm: 512.4 nm of Cauchy SiO2 on Si) is recovered within its
+    standard errors, with chi2_reduced near 1, and the plot is written."""
+    from jaxoptics.__main__ import main
+
+    png = tmp_path / "fs.png"
+    assert main(["fit-stack", "--example", "--plot", str(png), "--no-cache"]) == 0
+    out = capsys.readouterr().out
+    rows = {l.split()[0]: l.split()[1:3] for l in out.splitlines() if l.startswith("oxide.")}
+    d, sd = (float(x) for x in rows["oxide.thickness_nm"])
+    assert abs(d - 512.4) < 4 * sd
+    A, sA = (float(x) for x in rows["oxide.A"])
+    assert abs(A - 1.44721) < 4 * sA
+    chi = float(out.split("chi2_reduced ")[1].split(";")[0])
+    assert 0.8 < chi < 1.2
+    assert png.stat().st_size > 20000
+
+
+def test_model_file_format_and_errors(tmp_path, capsys):
+    from jaxoptics._model_file import load_sample
+
+    p = tmp_path / "m.toml"
+    p.write_text("""
+[[layer]]
+name = "film"
+thickness_nm = { value = 50, min = 0, max = 300 }
+material = { model = "tauc-lorentz", A = { value = 100 }, E0 = 4.0, C = 1.5, Eg = { value = 2.0, min = 1, max = 3 }, eps_inf = 1.2 }
+
+[[layer]]
+thickness_nm = 2.0
+material = { n = 1.46 }
+
+[substrate]
+material = { model = "drude-lorentz", eps_inf = 1.0, drude = [[{ value = 9.0, min = 5, max = 12 }, 0.07]] }
+""")
+    s = load_sample(p)
+    assert s.free_names() == ["film.A", "film.Eg", "substrate.drude[0][0]", "film.thickness_nm"]
+    assert isinstance(s.layers[0].material, jo.TaucLorentz) and s.layers[1].thickness_nm == 2.0
+    for text, msg in [
+        ("[[layer]]\nthickness_nm = 5\nmaterial = { model = 'cauchy', D = 1 }\n[substrate]\nmaterial = 'Si'\n",
+         r"m.toml: layer\[0\].material: cauchy has no parameter 'D'"),
+        ("[[layer]]\nthickness_nm = { val = 5 }\nmaterial = 'SiO2'\n[substrate]\nmaterial = 'Si'\n",
+         r"layer\[0\].thickness_nm: a free parameter is .*unknown keys \['val'\]"),
+        ("[substrate]\nmaterial = 'Unobtainium'\n", r"substrate.material: unknown built-in material 'Unobtainium'"),
+        ("[[layer]]\nthickness_nm = 5\n[substrate]\nmaterial = 'Si'\n", r"layer\[0\]: `material` is missing"),
+        ("title = \"x\"\nlayer = [1, \n  2,, ]\n", r"m.toml: not valid TOML: .*line 3"),
+    ]:
+        p.write_text(text)
+        with pytest.raises(ValueError, match=msg):
+            load_sample(p)
+    from jaxoptics.__main__ import main
+
+    assert main(["fit-stack", str(tmp_path / "missing.csv"), "--model", str(p), "--no-cache"]) == 2
+    assert "missing.csv: cannot read" in capsys.readouterr().err
