@@ -295,6 +295,16 @@ class Tabulated(Dispersion):
                 raise ValueError(f"Tabulated {self.name!r}: the {label} table has non-finite values")
             object.__setattr__(self, f"{label}_table", (w, v))
 
+    def _key(self):
+        tabs = tuple(None if t is None else (t[0].tobytes(), t[1].tobytes()) for t in (self.n_table, self.k_table))
+        return (self.name, tabs)
+
+    def __eq__(self, other):
+        return type(other) is type(self) and self._key() == other._key()
+
+    def __hash__(self):
+        return hash(self._key())
+
     @property
     def range_um(self):
         lo, hi = self.n_table[0][0], self.n_table[0][-1]

@@ -63,6 +63,16 @@ class RIIFormula(Dispersion):
         if self.k_table is not None:
             object.__setattr__(self, "k_table", tuple(np.asarray(a, np.float64) for a in self.k_table))
 
+    def _key(self):
+        k = None if self.k_table is None else (self.k_table[0].tobytes(), self.k_table[1].tobytes())
+        return (self.name, self.formula, self.coefficients, self.range, k)
+
+    def __eq__(self, other):
+        return type(other) is type(self) and self._key() == other._key()
+
+    def __hash__(self):
+        return hash(self._key())
+
     @property
     def range_um(self):
         return None if self.range is None else (float(self.range[0]), float(self.range[1]))

@@ -32,6 +32,7 @@ comparable weights; the overall scale is then estimated from the fit.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import equinox as eqx
@@ -43,9 +44,15 @@ import optimistix as optx
 from ._sample import Sample
 from ._spectra import Spectra
 
-# Gauss-Newton steps before a spectrum is handed to Levenberg-Marquardt; spectra per LM round
-_GN_STEPS = 40
-_RETRY_BLOCK = 64
+# Gauss-Newton converges in 8-17 steps on the benchmark's map (film thickness and Cauchy A, B, C
+# free) and a spectrum it has not fitted after 20 is handed to Levenberg-Marquardt, which takes
+# 50-80 steps on those. LM runs on blocks of 8 pending spectra: a vmapped solve runs until its
+# slowest member stops, so small blocks keep a few slow spectra from holding up many (measured
+# on 256 spectra: 6.3 ms per spectrum with blocks of 8, 10.5 with blocks of 64).
+_GN_STEPS = 20
+_RETRY_BLOCK = 8
+# Spectra per block of the Gauss-Newton stage (a lax.map over blocks bounds the memory of a map
+# of any size; 16-64 measured alike).
 _FIRST_BLOCK = 64
 DEFAULT_SIGMA = {"psi_deg": 0.05, "delta_deg": 0.1, "N": 0.002, "C": 0.002, "S": 0.002,
                  "R": 0.002, "R_s": 0.002, "R_p": 0.002, "T": 0.002, "T_s": 0.002, "T_p": 0.002}
@@ -168,7 +175,7 @@ def _grid_subset(wl_nm, n_max, d_max):
 
 
 def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, starts: int = 1,
-              max_grid: int = 4096, max_steps: int = 200, dtype=None) -> StackFit:
+              max_grid: int = 4096, max_steps: int = 200) -> StackFit:
     """Fit the `Free` parameters of `sample` to `spectra` (one spectrum or a map of them).
 
     **Arguments:**
@@ -181,7 +188,9 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     - `starts`: how many of the best grid points to refine; the lowest chi^2 wins.
     - `max_grid`: the most grid points per spectrum (several free thicknesses share this budget).
     - `max_steps`: Levenberg-Marquardt steps per start.
-    - `dtype`: `float64` (default when `jax_enable_x64` is on) or `float32`.
+
+    The fit runs in float64 when `jax_enable_x64` is on (recommended: the phase of a micrometre
+    film is a few hundred radians), float32 otherwise.
 
     **Returns:** a `StackFit`.
 
@@ -201,7 +210,7 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     p = len(free)
     if Q * P <= p:
         raise ValueError(f"{Q * P} data for {p} free parameters: a fit needs more data than parameters")
-    dtype = dtype or (jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+    dtype = jnp.dtype(jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
     batch = spectra.values.shape[:-2]
     B = math.prod(batch)
     V = jnp.asarray(spectra.values.reshape((B, Q, P)), dtype)
@@ -210,6 +219,29 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
         S = jnp.asarray(spectra.sigma.reshape((B, Q, P)), dtype)
     else:
         S = jnp.broadcast_to(jnp.asarray([DEFAULT_SIGMA[k] for k in kinds], dtype)[:, None], (B, Q, P))
+    key = (sample, kinds, tuple(map(float, spectra.wavelength_nm)), tuple(map(float, spectra.angle_deg)), B,
+           dtype.name, sigma_given, bool(global_start), int(starts), int(max_grid), int(max_steps))
+    try:
+        hash(key)
+    except TypeError:  # a model holding lists or arrays: compiled for this call only
+        run = _program.__wrapped__(*key)
+    else:
+        run = _program(*key)
+    x, sd, cov, corr, chi2r, conv, at_b, steps = run(V, S)
+    shp = lambda a: a.reshape(batch + a.shape[1:])
+    return StackFit(tuple(f.name for f in free), shp(x), shp(sd), shp(cov), shp(corr), shp(chi2r), shp(conv),
+                    shp(at_b), shp(steps), sigma_given)
+
+
+@functools.lru_cache(maxsize=16)
+def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts, max_grid, max_steps):
+    """The compiled fit for one sample structure, data grid and batch size (cached: a second
+    `fit_stack` call with the same ones runs without tracing or compiling)."""
+    dtype = jnp.dtype(dtype_name)
+    free = sample.free()
+    p = len(free)
+    Q, P = len(kinds), len(wl_nm)
+    spectra = Spectra(np.asarray(wl_nm), np.asarray(angle_deg), kinds, np.zeros((Q, P)))
     wl = jnp.asarray(spectra.wavelength_nm, dtype)
     ang = jnp.asarray(np.deg2rad(spectra.angle_deg), dtype)
     is_delta = np.asarray([k == "delta_deg" for k in kinds])
@@ -269,8 +301,22 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     gn = optx.GaussNewton(rtol=tol, atol=tol)
     lm = optx.LevenbergMarquardt(rtol=tol, atol=tol)
 
+    @jax.custom_jvp
+    def residuals_u(u, Vb, Sb):
+        return residuals_x(to_x(u), wl, ang, Vb, Sb)
+
+    @residuals_u.defjvp
+    def _residuals_u_jvp(primals, tangents):
+        # The Jacobian in one forward pass with p tangents (`jacfwd`), kept as a matrix: the solvers
+        # linearize this function and then apply the linearization to p basis vectors, which for
+        # the stack kernel would store and re-read every intermediate array; J @ du is cheap.
+        u, Vb, Sb = primals
+        du, dV, dS = tangents
+        r, J = _value_and_jacfwd(lambda u: residuals_x(to_x(u), wl, ang, Vb, Sb), u)
+        return r, J @ du - dV / Sb - r * dS / Sb  # r = (model - V) / S is linear in V and 1/S
+
     def solve(solver, steps_max, u0, Vb, Sb):
-        fn = lambda u, args: residuals_x(to_x(u), wl, ang, Vb, Sb)
+        fn = lambda u, args: residuals_u(u, Vb, Sb)
         sol = optx.least_squares(fn, solver, u0, max_steps=steps_max, throw=False)
         x = to_x(sol.value)
         r = residuals_x(x, wl, ang, Vb, Sb)
@@ -304,7 +350,7 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
         return (jnp.where(better, xs2[k], x), jnp.where(better, c22[k], c2), ok | ok2[k], steps + st2[k])
 
     def errors(x, c2, ok, Vb, Sb):
-        J = jax.jacfwd(lambda x: residuals_x(x, wl, ang, Vb, Sb))(x)
+        J = _value_and_jacfwd(lambda x: residuals_x(x, wl, ang, Vb, Sb), x)[1]
         m = J.shape[0]
         chi2r = c2 / (m - p)
         A = J.T @ J
@@ -347,11 +393,15 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
         sd, cov, corr, chi2r, conv, at_b = _blocked(jax.vmap(errors), (x, c2, ok, V, S), _FIRST_BLOCK)
         return x, sd, cov, corr, chi2r, conv, at_b, steps
 
-    run = jax.jit(run)
-    x, sd, cov, corr, chi2r, conv, at_b, steps = run(V, S)
-    shp = lambda a: a.reshape(batch + a.shape[1:])
-    return StackFit(tuple(f.name for f in free), shp(x), shp(sd), shp(cov), shp(corr), shp(chi2r), shp(conv),
-                    shp(at_b), shp(steps), sigma_given)
+    return jax.jit(run)
+
+
+def _value_and_jacfwd(f, x):
+    """`(f(x), J)` with `J[:, i] = df/dx_i`: one pass with `len(x)` tangents (the primal is not
+    batched over them, so it is computed once)."""
+    basis = jnp.eye(x.shape[0], dtype=x.dtype)
+    r, J = jax.vmap(lambda t: jax.jvp(f, (x,), (t,)), out_axes=(None, 1))(basis)
+    return r, J
 
 
 def _blocked(f, args, size):

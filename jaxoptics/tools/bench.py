@@ -293,11 +293,14 @@ def _sections(sections):
     """(name, title, measure, table) of the requested sections after "kernels", in report order."""
     from .bench_latency import bench_latency, latency_table
     from .bench_stack import LAYERS, bench_stack, stack_table
+    from .bench_stack_fit import bench_stack_fit, stack_fit_table
 
     known = [
         ("fit", "Index fits: 90 angles per curve, float64, noise 1e-3", bench_fit_in_subprocess, fit_table),
         ("stack", f"Thin-film stacks: {LAYERS} coherent layers on Si, R and T of s and p, (wavelength, angle) points",
          bench_stack, stack_table),
+        ("stackfit", "Film fits over a wafer map: psi/delta, 200 wavelengths x 3 angles per spectrum; thickness and Cauchy "
+         "A, B, C free", bench_stack_fit, stack_fit_table),
         ("latency", "Latency: from the command to the answer (fresh processes)", bench_latency, latency_table),
         ("devices", "Sharding over devices (forced host devices sharing this machine's cores)", bench_devices,
          devices_table),
@@ -312,7 +315,7 @@ def run_stamp() -> str:
     return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
 
 
-def run(*, quick=False, sections=("kernels", "fit", "stack", "devices", "latency"), out_dir="bench_out", sizes=None,
+def run(*, quick=False, sections=("kernels", "fit", "stack", "stackfit", "devices", "latency"), out_dir="bench_out", sizes=None,
         mitsuba=True) -> dict:
     import jax
     from tqdm.auto import tqdm
@@ -323,7 +326,7 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "devices", "latency
     report = {"machine": machine_description(), "quick": quick, "date": run_stamp()}
     cmd = "python -m jaxoptics bench" + (" --quick" if quick else "") + f" --sections {','.join(sections)}"
     md = [f"Measured by `{cmd}` on {report['date']}. Machine: {report['machine']}.", ""]
-    total = (6 * ("fit" in sections) + 3 * ("devices" in sections) + 24 * ("kernels" in sections) + 3 * ("stack" in sections)
+    total = (6 * ("fit" in sections) + 3 * ("devices" in sections) + 24 * ("kernels" in sections) + 3 * ("stack" in sections) + 4 * ("stackfit" in sections)
              + 9 * ("latency" in sections))
     with tqdm(total=total, desc="bench", unit="step") as bar:
         if "kernels" in sections:

@@ -1,0 +1,160 @@
+"""Benchmark section `stackfit`: a wafer map of film fits in one call against
+scipy.optimize.least_squares over the same model, one spectrum at a time.
+
+Each spectrum: psi and delta at 200 wavelengths (300-1000 nm) x 3 angles (65, 70, 75 degrees) of a
+Cauchy film on the built-in Si; free: the thickness (searched over 0-2000 nm by `fit_stack`'s grid)
+and the Cauchy A, B, C. The map's thickness varies smoothly around 480 nm, A and B slightly, and
+noise of 0.02 degrees (psi) and 0.05 degrees (delta) is added.
+
+The scipy baseline is the same model written in NumPy (the Airy formula of one film, the same
+interpolated Si index), fitted with `least_squares(method="lm")` from a start 5 nm from the true
+thickness: its best case, with no search over fringes. Its time per spectrum is the median over
+a sample of the map; the ratio compares per-spectrum times measured in the same run.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+ANGLES = (65.0, 70.0, 75.0)
+SIGMA = (0.02, 0.05)
+
+
+def _grid():
+    wl1 = np.linspace(300.0, 1000.0, 200)
+    return np.tile(wl1, len(ANGLES)), np.repeat(ANGLES, len(wl1))
+
+
+def wafer(B, seed=0):
+    """True parameters `(B, 4)`: A, B, C, thickness over a disc-shaped map of B sites."""
+    rng = np.random.default_rng(seed)
+    r = np.sqrt(rng.uniform(0, 1, B))
+    phi = rng.uniform(0, 2 * np.pi, B)
+    x, y = r * np.cos(phi), r * np.sin(phi)
+    d = 480 + 35 * (x * x + y * y) + 8 * x
+    A = 1.452 + 0.004 * y
+    return np.stack([A, np.full(B, 0.0036), np.full(B, 1e-5), d], -1)
+
+
+def numpy_psi_delta(x, lam_nm, ang_rad, N_sub):
+    """psi, delta (degrees, instrument convention) of a Cauchy film on a substrate: NumPy."""
+    A, B, C, d = x
+    lu = lam_nm / 1000
+    n1 = A + B / lu**2 + C / lu**4
+    c0 = np.cos(ang_rad)
+    s0 = 1 - c0**2
+    c1 = np.sqrt(1 - s0 / n1**2 + 0j)
+    c2 = np.sqrt(1 - s0 / N_sub**2 + 0j)
+    c2 = np.where(c2.imag < 0, -c2, c2)
+    rs01 = (c0 - n1 * c1) / (c0 + n1 * c1)
+    rs12 = (n1 * c1 - N_sub * c2) / (n1 * c1 + N_sub * c2)
+    rp01 = (n1 * c0 - c1) / (n1 * c0 + c1)
+    rp12 = (N_sub * c1 - n1 * c2) / (N_sub * c1 + n1 * c2)
+    e = np.exp(4j * np.pi * d * n1 * c1 / lam_nm)
+    rs = (rs01 + rs12 * e) / (1 + rs01 * rs12 * e)
+    rp = (rp01 + rp12 * e) / (1 + rp01 * rp12 * e)
+    X = rp * np.conj(rs)
+    psi = np.degrees(np.arctan2(np.abs(rp), np.abs(rs)))
+    delta = np.degrees(np.arctan2(-X.imag, X.real))
+    return np.concatenate([psi, delta])
+
+
+def bench_stack_fit(*, quick=False, progress=None, repeats=None):
+    import jax
+    import jax.numpy as jnp
+    from scipy.optimize import least_squares
+
+    import jaxoptics as jo
+
+    B = 500 if quick else 10_000
+    n_scipy = 20 if quick else 100
+    wl, ang = _grid()
+    truth = wafer(B)
+    si = jo.material("Si")
+    lam_um = wl / 1000
+    N_sub = np.interp(lam_um, *si.n_table) + 1j * np.interp(lam_um, *si.k_table)
+    ang_r = np.radians(ang)
+
+    model = jo.Sample([jo.Layer(jo.Cauchy(A=jo.Free(1.46, 1.3, 1.7), B=jo.Free(0.0, -0.05, 0.1), C=jo.Free(0.0, -0.01, 0.01)),
+                                jo.Free(100.0, 0.0, 2000.0), name="film")], si)
+
+    # data: the jaxoptics model at the true parameters (checked against the NumPy model below)
+    def clean(x):
+        return model.with_values([x[0], x[1], x[2], x[3]]).quantities(("psi_deg", "delta_deg"), jnp.asarray(wl),
+                                                                       jnp.asarray(ang_r), flat=True)
+
+    Q = np.asarray(jax.jit(jax.vmap(clean))(jnp.asarray(truth)))
+    agree = float(np.max(np.abs((Q[0] - numpy_psi_delta(truth[0], wl, ang_r, N_sub) + 180) % 360 - 180)))
+    P = len(wl)
+    rng = np.random.default_rng(1)
+    sig = np.repeat(SIGMA, P)
+    V = Q + rng.normal(size=Q.shape) * sig
+    spectra = jo.make_spectra(wl, ang, {"psi_deg": V[:, :P], "delta_deg": V[:, P:]},
+                              {"psi_deg": np.full((B, P), SIGMA[0]), "delta_deg": np.full((B, P), SIGMA[1])})
+    if progress:
+        progress.update(1)
+    rows = []
+    for dtype in ("float64",):
+        t = time.perf_counter()
+        fit = jo.fit_stack(model, spectra)
+        jax.block_until_ready(fit.values)
+        first = time.perf_counter() - t
+        runs = []
+        for _ in range(repeats or (1 if quick else 2)):
+            t = time.perf_counter()
+            fit = jo.fit_stack(model, spectra)
+            jax.block_until_ready(fit.values)
+            runs.append(time.perf_counter() - t)
+        run = float(np.median(runs))
+        d = np.asarray(fit["film.thickness_nm"], np.float64)
+        sd = np.asarray(fit.stderr_of("film.thickness_nm"), np.float64)
+        rows.append(dict(method=f"jaxoptics fit_stack, one call ({dtype})", spectra=B, compile_s=max(first - run, 0.0), run_s=run,
+                         per_spectrum_s=run / B, converged=float(np.mean(np.asarray(fit.converged))),
+                         recovered=float(np.mean(np.abs(d - truth[:, 3]) < 4 * sd)),
+                         median_stderr_nm=float(np.median(sd))))
+        if progress:
+            progress.update(1)
+
+    # scipy, one spectrum at a time, from 5 nm off the true thickness (no fringe search)
+    idx = np.linspace(0, B - 1, n_scipy).astype(int)
+    times, ok, rec = [], [], []
+    for i in idx:
+        y = V[i]
+
+        def resid(x, y=y):
+            r = numpy_psi_delta(x, wl, ang_r, N_sub) - y
+            r[P:] = (r[P:] + 180) % 360 - 180
+            return r / sig
+
+        x0 = np.array([1.46, 0.0, 0.0, truth[i, 3] + 5.0])
+        t = time.perf_counter()
+        res = least_squares(resid, x0, method="lm", xtol=1e-9, ftol=1e-9)
+        times.append(time.perf_counter() - t)
+        ok.append(res.success)
+        J = res.jac
+        cov = np.linalg.inv(J.T @ J) * max(1.0, np.sum(res.fun**2) / (2 * P - 4))
+        rec.append(abs(res.x[3] - truth[i, 3]) < 4 * math.sqrt(cov[3, 3]))
+    per = float(np.median(times))
+    rows.append(dict(method="scipy least_squares (lm), NumPy model, loop", spectra=n_scipy, compile_s=None, run_s=per * B,
+                     per_spectrum_s=per, converged=float(np.mean(ok)), recovered=float(np.mean(rec)), median_stderr_nm=None,
+                     note=f"run time for {B} spectra extrapolated from the median of {n_scipy}; start 5 nm from the truth; "
+                          f"model agrees with jaxoptics' to {agree:.1e} degrees"))
+    if progress:
+        progress.update(1)
+    return rows
+
+
+def stack_fit_table(rows) -> str:
+    base = next(r for r in rows if r["method"].startswith("scipy"))
+    out = ["| method | spectra | compile (s) | run (s) | per spectrum (ms) | converged | recovered | vs scipy |",
+           "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        comp = "-" if r["compile_s"] is None else f"{r['compile_s']:.1f}"
+        ratio = base["per_spectrum_s"] / r["per_spectrum_s"]
+        out.append(f"| {r['method']} | {r['spectra']} | {comp} | {r['run_s']:.2f} | {1e3 * r['per_spectrum_s']:.3f} | "
+                   f"{100 * r['converged']:.1f}% | {100 * r['recovered']:.1f}% | {ratio:.1f}x |")
+    out += ["", "recovered: the fitted thickness within 4 standard errors of the truth. " + base.get("note", "")]
+    return "\n".join(out)
