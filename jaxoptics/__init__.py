@@ -54,6 +54,7 @@ from ._rii import builtin_materials as builtin_materials
 from ._rii import load_rii_yaml as load_rii_yaml
 from ._rii import material as material
 from ._rii import rii_material as rii_material
+from ._model_file import load_sample as load_sample
 from ._sample import Layer as Layer
 from ._sample import Sample as Sample
 from ._spectra import KINDS as KINDS

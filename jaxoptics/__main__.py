@@ -156,7 +156,6 @@ def _fit_stack(args) -> int:
     _use_compilation_cache(args)
     jax.config.update("jax_enable_x64", True)
     import jaxoptics as jo
-    from jaxoptics._model_file import load_sample
 
     if args.example == bool(args.data):
         print("fit-stack: give a data file and --model, or --example", file=sys.stderr)
@@ -169,7 +168,7 @@ def _fit_stack(args) -> int:
         return 2
     try:
         spectra = jo.load_spectra(data_path)
-        sample = load_sample(model_path)
+        sample = jo.load_sample(model_path)
         print(f"jaxoptics fit-stack: {data_path} with model {model_path}")
         nsites = int(np.prod(spectra.batch_shape)) if spectra.batch_shape else 1
         print(f"{spectra.wavelength_nm.size} points ({spectra.wavelength_nm.min():g}-{spectra.wavelength_nm.max():g} nm, "

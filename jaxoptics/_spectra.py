@@ -59,7 +59,7 @@ class Spectra(NamedTuple):
         return self.values.shape[:-2]
 
 
-def make_spectra(wavelength_nm, angle_deg, values: dict, sigma: dict | None = None) -> Spectra:
+def make_spectra(wavelength_nm, angle_deg, values: dict, *, sigma: dict | None = None) -> Spectra:
     """Build `Spectra` from arrays: `values` maps kind names (see `KINDS`) to arrays `(..., P)`,
     `sigma` (optional) maps the same names to standard deviations of the same shapes."""
     w = np.asarray(wavelength_nm, np.float64).reshape(-1)

@@ -156,3 +156,16 @@ def test_latency_section(tmp_path):
     assert all(r["median_s"] > 0 for r in rows)
     table = latency_table(rows)
     assert table.count("x |") == 4  # three CLI rows and the SciPy row carry a ratio
+
+
+def test_stackfit_bench_section():
+    """The stackfit section fits a map in one call and the scipy loop on a sample of it, both
+    recovering the truth, and the table carries the ratio measured in the same run."""
+    from jaxoptics.tools.bench_stack_fit import bench_stack_fit, stack_fit_table
+
+    rows = bench_stack_fit(quick=True, repeats=1)
+    assert [r["method"].split()[0] for r in rows] == ["jaxoptics", "scipy"]
+    for r in rows:
+        assert r["run_s"] > 0 and r["converged"] == 1.0 and r["recovered"] >= 0.95, r
+    text = stack_fit_table(rows)
+    assert "| jaxoptics fit_stack, one call (float64) | 500 |" in text and "vs scipy" in text

@@ -84,7 +84,7 @@ def _spectra(d_true, seed, sigma=(0.02, 0.05)):
         vals.append((psi + sigma[0] * rng.normal(size=psi.shape), delta + sigma[1] * rng.normal(size=psi.shape)))
     V = np.asarray(vals)
     return jo.make_spectra(wl, ang, {"psi_deg": V[:, 0], "delta_deg": V[:, 1]},
-                           {"psi_deg": np.full(V[:, 0].shape, sigma[0]), "delta_deg": np.full(V[:, 0].shape, sigma[1])})
+                           sigma={"psi_deg": np.full(V[:, 0].shape, sigma[0]), "delta_deg": np.full(V[:, 0].shape, sigma[1])})
 
 
 def _model(d0=1000.0):
@@ -131,7 +131,7 @@ def test_undetermined_parameters_are_reported_not_guessed():
     rng = np.random.default_rng(3)
     q = q + rng.normal(size=q.shape) * np.array([[0.02], [0.05]])
     sp = jo.make_spectra(wl, ang, {"psi_deg": q[0], "delta_deg": q[1]},
-                         {"psi_deg": np.full(q[0].shape, 0.02), "delta_deg": np.full(q[0].shape, 0.05)})
+                         sigma={"psi_deg": np.full(q[0].shape, 0.02), "delta_deg": np.full(q[0].shape, 0.05)})
     fit = jo.fit_stack(sample, sp)
     i, j, g = (fit.names.index(n) for n in ("film.A", "film.thickness_nm", "ghost.n"))
     assert abs(float(fit.correlation[i, j])) > 0.95
@@ -234,8 +234,6 @@ def test_cli_fit_stack_example(capsys, tmp_path):
 
 
 def test_model_file_format_and_errors(tmp_path, capsys):
-    from jaxoptics._model_file import load_sample
-
     p = tmp_path / "m.toml"
     p.write_text("""
 [[layer]]
@@ -250,7 +248,7 @@ material = { n = 1.46 }
 [substrate]
 material = { model = "drude-lorentz", eps_inf = 1.0, drude = [[{ value = 9.0, min = 5, max = 12 }, 0.07]] }
 """)
-    s = load_sample(p)
+    s = jo.load_sample(p)
     assert s.free_names() == ["film.A", "film.Eg", "substrate.drude[0][0]", "film.thickness_nm"]
     assert isinstance(s.layers[0].material, jo.TaucLorentz) and s.layers[1].thickness_nm == 2.0
     for text, msg in [
@@ -264,7 +262,7 @@ material = { model = "drude-lorentz", eps_inf = 1.0, drude = [[{ value = 9.0, mi
     ]:
         p.write_text(text)
         with pytest.raises(ValueError, match=msg):
-            load_sample(p)
+            jo.load_sample(p)
     from jaxoptics.__main__ import main
 
     assert main(["fit-stack", str(tmp_path / "missing.csv"), "--model", str(p), "--no-cache"]) == 2

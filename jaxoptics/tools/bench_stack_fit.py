@@ -93,7 +93,7 @@ def bench_stack_fit(*, quick=False, progress=None, repeats=None):
     sig = np.repeat(SIGMA, P)
     V = Q + rng.normal(size=Q.shape) * sig
     spectra = jo.make_spectra(wl, ang, {"psi_deg": V[:, :P], "delta_deg": V[:, P:]},
-                              {"psi_deg": np.full((B, P), SIGMA[0]), "delta_deg": np.full((B, P), SIGMA[1])})
+                              sigma={"psi_deg": np.full((B, P), SIGMA[0]), "delta_deg": np.full((B, P), SIGMA[1])})
     if progress:
         progress.update(1)
     rows = []
