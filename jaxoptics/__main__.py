@@ -175,7 +175,7 @@ def _fit_stack(args) -> int:
               f"angles {', '.join(f'{a:g}' for a in np.unique(spectra.angle_deg))} deg) x {', '.join(spectra.kinds)}"
               f"{f'; {nsites} sites' if spectra.batch_shape else ''}; "
               f"errors {'from the sigma columns' if spectra.sigma is not None else 'scaled by the residual scatter'}")
-        fit = jo.fit_stack(sample, spectra, starts=args.starts)
+        fit = jo.fit_stack(sample, spectra, starts=args.starts, progress=nsites > 256)
     except (ValueError, ImportError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

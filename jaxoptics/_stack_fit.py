@@ -175,7 +175,7 @@ def _grid_subset(wl_nm, n_max, d_max):
 
 
 def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, starts: int = 1,
-              max_grid: int = 4096, max_steps: int = 200) -> StackFit:
+              max_grid: int = 4096, max_steps: int = 200, progress: bool = False) -> StackFit:
     """Fit the `Free` parameters of `sample` to `spectra` (one spectrum or a map of them).
 
     **Arguments:**
@@ -188,6 +188,8 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     - `starts`: how many of the best grid points to refine; the lowest chi^2 wins.
     - `max_grid`: the most grid points per spectrum (several free thicknesses share this budget).
     - `max_steps`: Levenberg-Marquardt steps per start.
+    - `progress`: report on standard error how many spectra the Gauss-Newton stage has done
+      (from inside the compiled call; for maps that take minutes).
 
     The fit runs in float64 when `jax_enable_x64` is on (recommended: the phase of a micrometre
     film is a few hundred radians), float32 otherwise.
@@ -220,7 +222,7 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     else:
         S = jnp.broadcast_to(jnp.asarray([DEFAULT_SIGMA[k] for k in kinds], dtype)[:, None], (B, Q, P))
     key = (sample, kinds, tuple(map(float, spectra.wavelength_nm)), tuple(map(float, spectra.angle_deg)), B,
-           dtype.name, sigma_given, bool(global_start), int(starts), int(max_grid), int(max_steps))
+           dtype.name, sigma_given, bool(global_start), int(starts), int(max_grid), int(max_steps), bool(progress))
     try:
         hash(key)
     except TypeError:  # a model holding lists or arrays: compiled for this call only
@@ -234,7 +236,7 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
 
 
 @functools.lru_cache(maxsize=16)
-def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts, max_grid, max_steps):
+def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts, max_grid, max_steps, progress):
     """The compiled fit for one sample structure, data grid and batch size (cached: a second
     `fit_stack` call with the same ones runs without tracing or compiling)."""
     dtype = jnp.dtype(dtype_name)
@@ -377,7 +379,7 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
 
     def run(V, S):
         V, S = V.reshape(B, -1), S.reshape(B, -1)
-        x, c2, ok, steps, u0s = _blocked(jax.vmap(first), (V, S), _FIRST_BLOCK)
+        x, c2, ok, steps, u0s = _blocked(jax.vmap(first), (V, S), _FIRST_BLOCK, _report if progress else None)
 
         # Levenberg-Marquardt for the spectra Gauss-Newton left unconverged, K at a time (the
         # pending ones gathered to the front), so that its cost follows the number of failures
@@ -404,7 +406,15 @@ def _value_and_jacfwd(f, x):
     return r, J
 
 
-def _blocked(f, args, size):
+def _report(done, total):
+    import sys
+
+    done, total = int(done), int(total)
+    end = "\n" if done >= total else ""
+    print(f"\rfit_stack: {done} of {total} spectra fitted (Gauss-Newton stage)", end=end, file=sys.stderr, flush=True)
+
+
+def _blocked(f, args, size, on_block=None):
     """`f` (batched over the leading axis) over blocks of `size` along that axis, one block after
     another (`lax.map`); the last block is padded by repeating the final element. Each block's
     intermediate arrays (a few spectra x all their points) then stay in the CPU's caches, where
@@ -414,7 +424,15 @@ def _blocked(f, args, size):
         return f(*args)
     nb = -(-B // size)
     pad = lambda a: jnp.concatenate([a, jnp.broadcast_to(a[-1:], (nb * size - B,) + a.shape[1:])]).reshape((nb, size) + a.shape[1:])
-    out = jax.lax.map(lambda xs: f(*xs), tuple(pad(a) for a in args))
+
+    def body(xs):
+        i, xs = xs
+        out = f(*xs)
+        if on_block is not None:  # after the block's results exist (ordered by the data dependence)
+            jax.debug.callback(lambda i, _: on_block(min((i + 1) * size, B), B), i, jax.tree.leaves(out)[0])
+        return out
+
+    out = jax.lax.map(body, (jnp.arange(nb), tuple(pad(a) for a in args)))
     return jax.tree.map(lambda y: y.reshape((nb * size,) + y.shape[2:])[:B], out)
 
 
