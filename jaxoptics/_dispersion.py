@@ -265,8 +265,19 @@ def _interp_or_nan(x, xp, fp):
     return jnp.where((x >= xp[0]) & (x <= xp[-1]), y, jnp.nan)
 
 
+class _ByContent:
+    """Equality and hash by `_key()` (the tables' bytes): two loads of the same material are
+    equal, so a compiled fit is reused for them."""
+
+    def __eq__(self, other):
+        return type(other) is type(self) and self._key() == other._key()
+
+    def __hash__(self):
+        return hash(self._key())
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
-class Tabulated(Dispersion):
+class Tabulated(_ByContent, Dispersion):
     """Measured `n` and `k` against wavelength, interpolated linearly in wavelength inside jit.
 
     `n_table` and `k_table` are `(wavelengths_um, values)` pairs of 1-D NumPy arrays (the two may
@@ -298,12 +309,6 @@ class Tabulated(Dispersion):
     def _key(self):
         tabs = tuple(None if t is None else (t[0].tobytes(), t[1].tobytes()) for t in (self.n_table, self.k_table))
         return (self.name, tabs)
-
-    def __eq__(self, other):
-        return type(other) is type(self) and self._key() == other._key()
-
-    def __hash__(self):
-        return hash(self._key())
 
     @property
     def range_um(self):

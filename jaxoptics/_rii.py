@@ -20,13 +20,13 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ._dispersion import Dispersion, Tabulated, _interp_or_nan, jax_complex
+from ._dispersion import Dispersion, Tabulated, _ByContent, _interp_or_nan, jax_complex
 
 _BUILTIN_DIR = Path(__file__).parent / "data" / "materials"
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class RIIFormula(Dispersion):
+class RIIFormula(_ByContent, Dispersion):
     """One of refractiveindex.info's dispersion formulas (`formula` 1 to 9) for `n`, with its
     `coefficients` as in the database, wavelengths in micrometres; `k_table`, an optional
     `(wavelengths_um, k)` pair, gives the absorption (interpolated linearly, NaN outside it).
@@ -66,12 +66,6 @@ class RIIFormula(Dispersion):
     def _key(self):
         k = None if self.k_table is None else (self.k_table[0].tobytes(), self.k_table[1].tobytes())
         return (self.name, self.formula, self.coefficients, self.range, k)
-
-    def __eq__(self, other):
-        return type(other) is type(self) and self._key() == other._key()
-
-    def __hash__(self):
-        return hash(self._key())
 
     @property
     def range_um(self):
