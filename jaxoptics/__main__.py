@@ -131,7 +131,7 @@ def _fit(args) -> int:
             print(f"{'':>13} {'':>11} {'':>6} note: eta = {float(r.eta_alt):.7f} (the other side of eta1 = {args.eta1:g}) "
                   "fits these data almost as well (Delta chi2 < 9); stderr includes it")
     if not args.absorbing:
-        by_lam = {}
+        by_lam: dict = {}
         for c, r in fits:
             by_lam.setdefault(c.wavelength_um, []).append(r)
         for lam, rs in by_lam.items():

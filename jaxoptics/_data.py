@@ -131,8 +131,8 @@ def load_reflectance(path: str | os.PathLike, *, r_tolerance: float = 0.05) -> R
     ignored = tuple(n for k, n in enumerate(names) if k not in cols.values())
     if len(rows) < 2:
         raise ValueError(f"{path}: a header but no data rows")
-    data = {k: [] for k in cols}
-    lines = []
+    data: dict[str, list] = {k: [] for k in cols}
+    lines: list[int] = []
     for line_no, line in rows[1:]:
         fields = next(csv.reader([line]))
         if len(fields) != len(names):
@@ -161,7 +161,7 @@ def load_reflectance(path: str | os.PathLike, *, r_tolerance: float = 0.05) -> R
             data[name].append(v)
         lines.append(line_no)
     arr = lambda n, dt=np.float64: None if n not in data else np.asarray(data[n], dtype=dt)
-    return ReflectanceData(path, arr("angle_deg"), arr("R"), arr("sigma"), arr("polarization", object),
+    return ReflectanceData(path, np.asarray(data["angle_deg"], np.float64), np.asarray(data["R"], np.float64), arr("sigma"), arr("polarization", object),
                            arr("wavelength_um"), np.asarray(lines), ignored)
 
 

@@ -357,4 +357,4 @@ def substitute(model: Dispersion, values) -> Dispersion:
     """`model` with its `Free` leaves replaced, in `parameter_leaves` order, by `values`."""
     it = iter(values)
     changes = {f: _replace(getattr(model, f), it) for f in model._params}
-    return dataclasses.replace(model, **changes)
+    return dataclasses.replace(model, **changes)  # type: ignore[type-var]  # every model is a dataclass

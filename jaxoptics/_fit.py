@@ -74,11 +74,11 @@ def check_curves(theta, R, sigma, *, n_params: int, where: str = "") -> None:
         idx = tuple(int(i) for i in bad[0])
         raise ValueError(f"R{list(idx)} = {Rv[idx]} is not finite{at}")
     flat = Rv.reshape(-1, th.shape[0])
-    const = np.flatnonzero(np.ptp(flat, axis=-1) == 0)
-    if const.size:
-        k = tuple(int(i) for i in np.unravel_index(const[0], Rv.shape[:-1])) if Rv.ndim > 1 else ()
+    const_rows = np.flatnonzero(np.ptp(flat, axis=-1) == 0)
+    if const_rows.size:
+        k = tuple(int(i) for i in np.unravel_index(const_rows[0], Rv.shape[:-1])) if Rv.ndim > 1 else ()
         raise ValueError(
-            f"curve {list(k)}{at} has the same reflectance {flat[const[0], 0]} at every angle: "
+            f"curve {list(k)}{at} has the same reflectance {flat[const_rows[0], 0]} at every angle: "
             "a constant curve carries no information on the index"
         )
     if sigma is not None:
@@ -173,11 +173,11 @@ def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, e
     retry = solver is None and not absorbing
     solver = _default_solver(dt, absorbing) if solver is None else solver
     kw = dict(polarization=polarization, absorbing=absorbing, max_steps=int(max_steps), sigma_given=sigma is not None)
-    eta1 = jnp.asarray(eta1, dt)
-    lm = optx.LevenbergMarquardt(rtol=_tol(dt), atol=_tol(dt)) if retry else None
+    eta1_arr = jnp.asarray(eta1, dt)
+    lm: optx.LevenbergMarquardt | None = optx.LevenbergMarquardt(rtol=_tol(dt), atol=_tol(dt)) if retry else None
     shards = _batch_shards(Rf)
     if shards is None:
-        res = _solve(theta, Rf, w, eta1, y_init, solver, lm, use_init, kw)
+        res = _solve(theta, Rf, w, eta1_arr, y_init, solver, lm, use_init, kw)
     else:
-        res = _fit_per_shard(shards, theta, Rf, w, eta1, y_init, solver, lm, use_init, kw)
+        res = _fit_per_shard(shards, theta, Rf, w, eta1_arr, y_init, solver, lm, use_init, kw)
     return jax.tree_util.tree_map(lambda x: x.reshape(batch + x.shape[1:]), res)

@@ -183,5 +183,7 @@ def synthetic_reflectance(key: PRNGKeyArray | None, eta2: Inexact[ArrayLike, "*b
     eta2 = jnp.asarray(eta2)
     R = _reflectance(jnp.cos(theta), eta1, eta2[..., None], polarization)
     if noise:
+        if key is None:
+            raise ValueError("noise > 0 needs a PRNG key: synthetic_reflectance(jax.random.PRNGKey(0), ...)")
         R = R + noise * jax.random.normal(key, R.shape, R.dtype)
     return R

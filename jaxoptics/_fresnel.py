@@ -183,7 +183,7 @@ def _valid_index(eta):
     return _positive_finite(eta)
 
 
-def _prepare(cos_i, eta1, eta2, *, allow_complex: bool):
+def _prepare(cos_i, eta1, eta2, *, allow_complex: bool) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Validate at trace time; return arrays in the computation dtype."""
     cos_i = V.as_real(cos_i, "cos_i")
     eta1 = V.as_index(eta1, "eta1", allow_complex=False)

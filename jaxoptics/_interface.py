@@ -169,10 +169,11 @@ def interface(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batch 3"],
     tir = tm.tir if (tm is not None and spec.tir_possible) else None
 
     if "t" in want:
+        assert tm is not None  # need_terms holds when t is wanted
         col = lambda x: x[..., None]
         t = _refracted(spec.method, i, n, nf, col(c), col(tm.ki), col(tm.kt), col(tm.diff), cr, col(e1), col(e2), 1.0)
         if spec.tir_possible:
-            t = jnp.where(tir[..., None], out["r"], t)
+            t = jnp.where(_req(tir)[..., None], out["r"], t)
         out["t"] = t
     if "tir" in want:
         out["tir"] = tir if tir is not None else jnp.zeros(batch, bool)
@@ -196,11 +197,12 @@ def interface(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batch 3"],
             a = (e1 - e2) / (e1 + e2)
             r0 = a * a
             if spec.fresnel == "schlick_tir":
+                assert tm is not None  # need_terms holds for schlick_tir
                 cos_t = tm.kt / e2
                 cu = jnp.where(e1 > e2, cos_t, c)
                 R = _schlick_from_r0(cu, r0)
                 if spec.tir_possible:
-                    R = jnp.where(tir, 1, R)
+                    R = jnp.where(_req(tir), 1, R)
             else:
                 R = _schlick_from_r0(c, r0)
             out.update(R=R, T=1 - R)
@@ -283,8 +285,8 @@ def scene_interface(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batc
     `stack` (finite everywhere).
     """
     kinds = tuple(scene.kinds)
-    bad = [k for k in kinds if k not in MATERIAL_KINDS]
-    if bad or not kinds:
+    unknown = [k for k in kinds if k not in MATERIAL_KINDS]
+    if unknown or not kinds:
         raise ValueError(f"scene kinds must be a non-empty tuple among {MATERIAL_KINDS}, got {kinds}")
     wls = tuple(float(w) for w in scene.wavelengths)
     coated = [k for k in kinds if k in COATED_KINDS]
@@ -298,46 +300,46 @@ def scene_interface(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batc
     if any(not (w > 0 and w < float("inf")) for w in wls):
         raise ValueError(f"SceneSpec.wavelengths must be finite and > 0, got {scene.wavelengths}")
     if coated:
-        for name, x, bad, what in (("film_d", film_d, lambda v: ~(np.isfinite(v) & (v >= 0)), "finite and >= 0"),
+        for name, arr, bad, what in (("film_d", film_d, lambda v: ~(np.isfinite(v) & (v >= 0)), "finite and >= 0"),
                                    ("film_eta", film_eta, lambda v: ~((np.real(v) > 0) & (np.imag(v) >= 0)),
                                     "real part > 0 and k >= 0")):
-            if not isinstance(x, jax.core.Tracer) and np.any(bad(np.asarray(x))):
-                idx = tuple(int(j) for j in np.argwhere(np.atleast_1d(bad(np.asarray(x))))[0])
-                raise ValueError(f"{name}{list(idx)} = {np.atleast_1d(np.asarray(x))[idx].item()!r}: must be {what}")
-    kind = jnp.asarray(kind)
-    if not jnp.issubdtype(kind.dtype, jnp.integer):
-        raise ValueError(f"kind must be an integer array (an index into scene.kinds), got dtype {kind.dtype}")
+            if not isinstance(arr, jax.core.Tracer) and np.any(bad(np.asarray(arr))):
+                bad_at = tuple(int(j) for j in np.argwhere(np.atleast_1d(bad(np.asarray(arr))))[0])
+                raise ValueError(f"{name}{list(bad_at)} = {np.atleast_1d(np.asarray(arr))[bad_at].item()!r}: must be {what}")
+    kind_arr = jnp.asarray(kind)
+    if not jnp.issubdtype(kind_arr.dtype, jnp.integer):
+        raise ValueError(f"kind must be an integer array (an index into scene.kinds), got dtype {kind_arr.dtype}")
     dt = V.float_dtype(i, n, eta1, eta2)
     e2c = jnp.asarray(eta2)
     e2r = jnp.real(e2c).astype(dt) if jnp.iscomplexobj(e2c) else e2c.astype(dt)
-    results = []
+    results: list[Hit] = []
     for k in kinds:
         if k == "mirror":
-            r = interface(i, n, eta1, e2r, spec=InterfaceSpec(outputs=("r",), check_inputs=scene.check_inputs)).r
+            r = _req(interface(i, n, eta1, e2r, spec=InterfaceSpec(outputs=("r",), check_inputs=scene.check_inputs)).r)
             one = jnp.ones(r.shape[:-1], dt)
             results.append(Hit(r, r, one, jnp.zeros_like(one), jnp.zeros(one.shape, bool)))
         elif k == "conductor":
             e2k = e2c if jnp.iscomplexobj(e2c) else e2c.astype(V.complex_dtype(dt))
             x = interface(i, n, eta1, e2k, spec=InterfaceSpec(outputs=("r", "R"), complex_index=True,
                                                               check_inputs=scene.check_inputs))
-            results.append(Hit(x.r, x.r, x.R, jnp.zeros_like(x.R), jnp.zeros(x.R.shape, bool)))
+            results.append(Hit(_req(x.r), _req(x.r), _req(x.R), jnp.zeros_like(_req(x.R)), jnp.zeros(_req(x.R).shape, bool)))
         elif k == "dielectric":
             x = interface(i, n, eta1, e2r, spec=InterfaceSpec(("r", "t", "tir", "R", "T"), scene.fresnel, scene.method,
                                                               check_inputs=scene.check_inputs))
-            results.append(Hit(x.r, x.t, x.R, x.T, x.tir))
+            results.append(Hit(_req(x.r), _req(x.t), _req(x.R), _req(x.T), _req(x.tir)))
         elif k == "thin_dielectric":  # thin sheet: both faces, light bouncing inside adds incoherently
             x = interface(i, n, eta1, e2r, spec=InterfaceSpec(("r", "R"), scene.fresnel, scene.method,
                                                               tir_possible=False, check_inputs=scene.check_inputs))
-            Rt = 2 * x.R / (1 + x.R)
-            results.append(Hit(x.r, jnp.broadcast_to(i, x.r.shape).astype(dt), Rt, 1 - Rt, jnp.zeros(Rt.shape, bool)))
+            Rt = 2 * _req(x.R) / (1 + _req(x.R))
+            results.append(Hit(_req(x.r), jnp.broadcast_to(i, _req(x.r).shape).astype(dt), Rt, 1 - Rt, jnp.zeros(Rt.shape, bool)))
         elif k == "coated_dielectric":
             x = interface(i, n, eta1, e2r, spec=InterfaceSpec(("r", "t", "tir"), scene.fresnel, scene.method,
                                                               check_inputs=scene.check_inputs))
             R, T = _film(i, n, eta1, e2r, film_eta, film_d, wls, dt)
-            results.append(Hit(x.r, x.t, R, T, x.tir))
+            results.append(Hit(_req(x.r), _req(x.t), R, T, _req(x.tir)))
         else:  # coated conductor
             e2k = e2c if jnp.iscomplexobj(e2c) else e2c.astype(V.complex_dtype(dt))
-            r = interface(i, n, eta1, e2r, spec=InterfaceSpec(outputs=("r",), check_inputs=scene.check_inputs)).r
+            r = _req(interface(i, n, eta1, e2r, spec=InterfaceSpec(outputs=("r",), check_inputs=scene.check_inputs)).r)
             R, _ = _film(i, n, eta1, e2k, film_eta, film_d, wls, dt)
             results.append(Hit(r, r, R, jnp.zeros_like(R), jnp.zeros(r.shape[:-1], bool)))
     if wls:  # every kind spectral: uncoated ones repeat their (non-dispersive) value
@@ -345,13 +347,19 @@ def scene_interface(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batc
         results = [h if k in COATED_KINDS else h._replace(R=rep(h.R), T=rep(h.T)) for k, h in zip(kinds, results)]
     if len(results) == 1:
         out = results[0]
-        inside = kind == 0
+        inside = kind_arr == 0
     else:
-        idx = jnp.clip(kind, 0, len(kinds) - 1)
+        idx = jnp.clip(kind_arr, 0, len(kinds) - 1)
         out = jax.tree_util.tree_map(lambda *xs: _select(idx, xs), *results)
-        inside = (kind >= 0) & (kind < len(kinds))
+        inside = (kind_arr >= 0) & (kind_arr < len(kinds))
     nan = lambda v: jnp.where(inside[..., None] if v.ndim > inside.ndim else inside, v, jnp.nan)
     return Hit(nan(out.r), nan(out.t), nan(out.R), nan(out.T), out.tir & inside)
+
+
+def _req(v: jax.Array | None) -> jax.Array:
+    """An output `interface` was asked for (so not None)."""
+    assert v is not None
+    return v
 
 
 def _film(i, n, eta1, eta2, film_eta, film_d, wls, dt):

@@ -33,11 +33,11 @@ import math
 import tomllib
 from pathlib import Path
 
-from ._dispersion import Cauchy, Constant, DrudeLorentz, Free, Sellmeier, TaucLorentz
+from ._dispersion import Cauchy, Constant, Dispersion, DrudeLorentz, Free, Sellmeier, TaucLorentz
 from ._rii import load_rii_yaml, material, rii_material
 from ._sample import Layer, Sample
 
-_MODELS = {"cauchy": Cauchy, "sellmeier": Sellmeier, "tauc-lorentz": TaucLorentz, "drude-lorentz": DrudeLorentz}
+_MODELS: dict[str, type[Dispersion]] = {"cauchy": Cauchy, "sellmeier": Sellmeier, "tauc-lorentz": TaucLorentz, "drude-lorentz": DrudeLorentz}
 
 
 class _Err(ValueError):
@@ -139,7 +139,7 @@ def load_sample(path: str | Path) -> Sample:
         if not isinstance(sub, dict) or "material" not in sub:
             raise _Err("[substrate] with a `material` is missing")
         ambient = doc.get("ambient", 1.0)
-        return Sample(layers, _material(sub["material"], "substrate.material", path.parent), ambient)
+        return Sample(tuple(layers), _material(sub["material"], "substrate.material", path.parent), ambient)
     except _Err as e:
         raise ValueError(f"{path}: {e}") from None
     except ValueError as e:

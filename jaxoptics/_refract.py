@@ -57,7 +57,7 @@ def _dot(a, b):
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
-def _vectors(i, n, *etas):
+def _vectors(i, n, *etas) -> tuple[jax.Array, jax.Array, tuple[int, ...]]:
     """Validate; return i, n broadcast to one shape (..., 3) and the batch shape (...)."""
     i = V.vector(i, "i")
     n = V.vector(n, "n")
@@ -164,7 +164,7 @@ def _rsqrt_positive(x):
     return jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, x, 1)), 1)
 
 
-def _normalize(v):
+def _normalize(v) -> jax.Array:
     """v / |v| over the last axis; zero vectors stay zero, with a finite derivative (double where)."""
     return v * _rsqrt_positive(_dot(v, v))[..., None]
 

@@ -218,7 +218,8 @@ def rii_material(page: str) -> Dispersion:
 
 
 def _read_builtin(path: Path) -> Dispersion:
-    meta, rows = {}, []
+    meta: dict[str, str] = {}
+    rows: list[list[float]] = []
     for j, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
         s = line.strip()
         if not s:

@@ -122,7 +122,7 @@ class Sample:
     def free_names(self) -> list[str]:
         return [p.name for p in self.free()]
 
-    def with_values(self, values) -> Sample:
+    def with_values(self, values) -> _ResolvedSample:
         """This sample with its free parameters (in `free_names()` order) set to `values`
         (numbers or JAX arrays; used inside traced functions)."""
         it = iter(values)

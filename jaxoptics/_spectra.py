@@ -144,8 +144,9 @@ def load_spectra(path: str | os.PathLike) -> Spectra:
     if not measured:
         _fail(path, hline, f"no measured quantity; give one or more of {', '.join(KINDS)} or m11..m44")
     num = [h for h in header if h != "site"]
-    cols = {h: [] for h in num}
-    site_col, line_no = [], []
+    cols: dict[str, list[float]] = {h: [] for h in num}
+    site_col: list[str] = []
+    line_no: list[int] = []
     for i, l in lines[1:]:
         cells = next(csv.reader([l]))
         if len(cells) != len(header):
@@ -177,49 +178,50 @@ def load_spectra(path: str | os.PathLike) -> Spectra:
             _fail(path, lines_arr[k], f"column {header.index(col) + 1} ({col}) = {A[col][k]}: must be "
                   + ("positive" if name == "wavelength" else "in [0, 90) degrees"))
     # quantities: the named ones, then N, C, S from a Mueller matrix
-    values, sigmas = {}, {}
-    for k in KINDS:
-        if k in A:
-            values[k] = A[k]
-            if "sigma_" + k in A:
-                sigmas[k] = A["sigma_" + k]
+    values: dict[str, np.ndarray] = {}
+    sigmas: dict[str, np.ndarray] = {}
+    for kind in KINDS:
+        if kind in A:
+            values[kind] = A[kind]
+            if "sigma_" + kind in A:
+                sigmas[kind] = A["sigma_" + kind]
     mu = [m for m in _MUELLER if m in A]
     if mu:
         if "m11" in A and np.any(np.abs(A["m11"] - 1) > 1e-6):
-            k = int(np.argmax(np.abs(A["m11"] - 1) > 1e-6))
-            _fail(path, lines_arr[k], f"m11 = {A['m11'][k]}: the Mueller matrix must be normalized (m11 = 1)")
+            row = int(np.argmax(np.abs(A["m11"] - 1) > 1e-6))
+            _fail(path, lines_arr[row], f"m11 = {A['m11'][row]}: the Mueller matrix must be normalized (m11 = 1)")
         for q, parts in (("N", (("m12", -1), ("m21", -1))), ("C", (("m33", 1), ("m44", 1))), ("S", (("m34", 1), ("m43", -1)))):
-            have = [(m, s) for m, s in parts if m in A]
+            have = [(m, sign) for m, sign in parts if m in A]
             if have and q not in values:
-                values[q] = sum(s * A[m] for m, s in have) / len(have)
+                values[q] = np.sum([sign * A[m] for m, sign in have], axis=0) / len(have)
                 sig = [A["sigma_" + m] for m, _ in have if "sigma_" + m in A]
                 if len(sig) == len(have):
-                    sigmas[q] = np.sqrt(sum(s * s for s in sig)) / len(have)
+                    sigmas[q] = np.sqrt(np.sum([x * x for x in sig], axis=0)) / len(have)
         if not any(q in values for q in ("N", "C", "S")):
             _fail(path, hline, "Mueller columns given without any of m12, m21, m33, m44, m34, m43 (the isotropic elements)")
-    for k, v in values.items():
-        if k in ("R", "R_s", "R_p", "T", "T_s", "T_p") and (np.any(v < -0.05) or np.any(v > 1.05)):
-            j = int(np.argmax((v < -0.05) | (v > 1.05)))
-            _fail(path, lines_arr[j], f"{k} = {v[j]}: reflectance and transmittance are fractions in [0, 1] (percent? divide by 100)")
+    for kind, vals in values.items():
+        if kind in ("R", "R_s", "R_p", "T", "T_s", "T_p") and (np.any(vals < -0.05) or np.any(vals > 1.05)):
+            j = int(np.argmax((vals < -0.05) | (vals > 1.05)))
+            _fail(path, lines_arr[j], f"{kind} = {vals[j]}: reflectance and transmittance are fractions in [0, 1] (percent? divide by 100)")
     if sigmas and set(sigmas) != set(values):
         missing = sorted(set(values) - set(sigmas))
         _fail(path, hline, f"sigma columns are given for some quantities but not for {missing}: give all or none")
-    for k, s in sigmas.items():
-        if np.any(s <= 0):
-            j = int(np.argmax(s <= 0))
-            _fail(path, lines_arr[j], f"sigma of {k} = {s[j]}: must be positive")
+    for kind, sg in sigmas.items():
+        if np.any(sg <= 0):
+            j = int(np.argmax(sg <= 0))
+            _fail(path, lines_arr[j], f"sigma of {kind} = {sg[j]}: must be positive")
     kinds = tuple(values)
     V = np.stack([values[k] for k in kinds])  # (Q, rows)
     S = np.stack([sigmas[k] for k in kinds]) if sigmas else None
     a = A["angle_deg"]
-    sites = None
+    sites: tuple | None = None
     if site_col:
         labels = list(dict.fromkeys(site_col))
-        idx = [np.flatnonzero(np.asarray(site_col) == s) for s in labels]
+        idx = [np.flatnonzero(np.asarray(site_col) == lab) for lab in labels]
         P = len(idx[0])
-        for s, ix in zip(labels, idx):
+        for lab, ix in zip(labels, idx):
             if len(ix) != P or not (np.array_equal(wl[ix], wl[idx[0]]) and np.array_equal(a[ix], a[idx[0]])):
-                _fail(path, lines_arr[ix[0]], f"site {s!r} does not list the same (wavelength, angle) points, in the same order, "
+                _fail(path, lines_arr[ix[0]], f"site {lab!r} does not list the same (wavelength, angle) points, in the same order, "
                       f"as site {labels[0]!r}")
         V = np.stack([V[:, ix] for ix in idx])
         S = None if S is None else np.stack([S[:, ix] for ix in idx])

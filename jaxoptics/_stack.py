@@ -521,7 +521,7 @@ def stack(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batch L-2"]
     Reference: Born & Wolf, sec. 1.6; Byrnes, arXiv:1603.02720.
     """
     n, d, wavelength, cos_i, inc, _, batch = _prepare(n, d, wavelength, cos_i, incoherent)
-    return _chunked(lambda *args: _stack(*args, inc), (n, d, wavelength, cos_i), batch)
+    return _chunked(lambda n_, d_, w_, c_: _stack(n_, d_, w_, c_, inc), (n, d, wavelength, cos_i), batch)
 
 
 # Points per block of `_chunked`. The layer scan streams its carry (the tangential fields of both

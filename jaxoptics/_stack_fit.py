@@ -212,12 +212,12 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     p = len(free)
     if Q * P <= p:
         raise ValueError(f"{Q * P} data for {p} free parameters: a fit needs more data than parameters")
-    dtype = jnp.dtype(jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+    dtype = jnp.dtype(jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32)
     batch = spectra.values.shape[:-2]
     B = math.prod(batch)
     V = jnp.asarray(spectra.values.reshape((B, Q, P)), dtype)
     sigma_given = spectra.sigma is not None
-    if sigma_given:
+    if spectra.sigma is not None:
         S = jnp.asarray(spectra.sigma.reshape((B, Q, P)), dtype)
     else:
         S = jnp.broadcast_to(jnp.asarray([DEFAULT_SIGMA[k] for k in kinds], dtype)[:, None], (B, Q, P))
@@ -277,7 +277,7 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         for i in tidx:
             layer_name = free[i].name.rsplit(".", 1)[0]
             li = sample.layer_names.index(layer_name)
-            N = np.asarray(fixed.layers[li].material.nk(jnp.asarray(lam / 1000, jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)))
+            N = np.asarray(fixed.layers[li].material.nk(jnp.asarray(lam / 1000, jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32)))
             nmax = float(np.nanmax(np.abs(N))) if np.any(np.isfinite(N)) else 2.0
             nmax_all = max(nmax_all, nmax)
             step = lam.min() / (2 * nmax) / 8

@@ -7,6 +7,7 @@ cannot be checked inside ``jit``; the kernels document what out-of-domain values
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -59,7 +60,7 @@ def is_complex(*xs) -> bool:
     )
 
 
-def vector(x, name: str):
+def vector(x, name: str) -> jax.Array:
     """A direction: floating array of shape ``(..., 3)``."""
     x = as_real(x, name)
     shape = np.shape(x)

@@ -270,7 +270,7 @@ def devices_table(rows) -> str:
 
 def fit_table(rows) -> str:
     # the speed-up of each row against the first scipy row (default trf) of the same kind of fit
-    base = {}
+    base: dict = {}
     for r in rows:
         if r["method"].startswith("scipy") and "per_curve_s" in r:
             base.setdefault(r.get("kind", "real"), r)

@@ -93,8 +93,8 @@ def bench_latency(*, quick=False, progress=None, repeats=None) -> list[dict]:
             progress.update(1)
 
     row("import jaxoptics", [_wall([py, "-c", "import jaxoptics"]) for _ in range(reps)])
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
         script = tmp / "scipy_fit.py"
         script.write_text(SCIPY_SCRIPT)
         cli = [py, "-m", "jaxoptics", "fit", "--example"]

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._dispersion import Tabulated
 from .._rii import _BUILTIN_DIR, RIIFormula, _database_dir, load_rii_yaml
 
 # name: (refractiveindex.info page, wavelength window in micrometres for tabulated data)
@@ -35,13 +36,15 @@ def main(out: Path = _BUILTIN_DIR) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for name, (page, window) in PAGES.items():
         m = load_rii_yaml(_file(page), name=name)
+        assert isinstance(m, (RIIFormula, Tabulated))
         head = [f"# {name}",
                 f"# source: {m.reference}",
                 f"# via: refractiveindex.info database (CC0), page {page}",
                 "# units: wavelength in micrometres; n, k (k >= 0 absorbing)"]
         if isinstance(m, RIIFormula):
+            rng = m.range_um or (0.0, 0.0)
             head += [f"# formula: {m.formula}", f"# coefficients: {' '.join(repr(c) for c in m.coefficients)}",
-                     f"# range_um: {m.range_um[0]} {m.range_um[1]}"]
+                     f"# range_um: {rng[0]} {rng[1]}"]
             body = []
         else:
             w, n = m.n_table
