@@ -243,9 +243,9 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
     free = sample.free()
     p = len(free)
     Q, P = len(kinds), len(wl_nm)
-    spectra = Spectra(np.asarray(wl_nm), np.asarray(angle_deg), kinds, np.zeros((Q, P)))
-    wl = jnp.asarray(spectra.wavelength_nm, dtype)
-    ang = jnp.asarray(np.deg2rad(spectra.angle_deg), dtype)
+    lam = np.asarray(wl_nm)
+    wl = jnp.asarray(lam, dtype)
+    ang = jnp.asarray(np.deg2rad(np.asarray(angle_deg)), dtype)
     is_delta = np.asarray([k == "delta_deg" for k in kinds])
     has_delta = bool(is_delta.any())
     bounds = [_Bound(f.lower, f.upper) for f in free]
@@ -271,13 +271,12 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
     sub = np.arange(P)
     if tidx:
         fixed = sample.fixed()
-        lam = np.asarray(spectra.wavelength_nm)
         axes = []
         nmax_all = 1.0
         for i in tidx:
             layer_name = free[i].name.rsplit(".", 1)[0]
             li = sample.layer_names.index(layer_name)
-            N = np.asarray(fixed.layers[li].material.nk(jnp.asarray(lam / 1000, jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32)))
+            N = np.asarray(fixed.layers[li].material.nk(jnp.asarray(lam / 1000, dtype)))
             nmax = float(np.nanmax(np.abs(N))) if np.any(np.isfinite(N)) else 2.0
             nmax_all = max(nmax_all, nmax)
             step = lam.min() / (2 * nmax) / 8
@@ -333,11 +332,9 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
             u0s = to_u(jnp.asarray(x0, dtype))[None]
         else:
             g = jnp.asarray(grid, dtype)
-            nsub = len(sub)
             Vs = Vb.reshape(Q, P)[:, sub].reshape(-1)
             Ss = Sb.reshape(Q, P)[:, sub].reshape(-1)
             cost = jax.vmap(lambda x: jnp.sum(residuals_x(x, wl[sub], ang[sub], Vs, Ss) ** 2))(g)
-            del nsub
             cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
             u0s = jax.vmap(to_u)(g[jnp.argsort(cost)[:starts]])
         xs, c2, ok, steps = jax.vmap(lambda u0: solve(gn, _GN_STEPS, u0, Vb, Sb))(u0s)
