@@ -23,6 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _validate as V
+
 # h c / e in eV um (CODATA 2018, exact)
 HC_EV_UM = 1.2398419843320026
 
@@ -49,10 +51,6 @@ class Free:
             raise ValueError(f"Free start {self.value} lies outside its bounds ({self.lower}, {self.upper})")
 
 
-def _val(x):
-    return x.value if isinstance(x, Free) else x
-
-
 class Dispersion:
     """Base of the dispersion models. Subclasses are frozen dataclasses; `_params` names the
     fields that hold parameters (numbers, `Free`, or tuples of them)."""
@@ -68,10 +66,6 @@ class Dispersion:
         """The dielectric function `eps = N^2`."""
         N = self.nk(wavelength_um)
         return N * N
-
-
-def _complex_dtype(x):
-    return jnp.complex128 if jnp.asarray(x).dtype == jnp.float64 else jnp.complex64
 
 
 def _from_eps(eps):
@@ -236,7 +230,7 @@ class DrudeLorentz(Dispersion):
 
     def eps(self, wavelength_um):
         E = _energy(jnp.asarray(wavelength_um))
-        cdt = _complex_dtype(E)
+        cdt = V.complex_dtype(E.dtype)
         c = lambda x: jnp.asarray(x, E.dtype).astype(cdt)
         E = E.astype(cdt)
         out = c(self.eps_inf) + jnp.zeros_like(E)

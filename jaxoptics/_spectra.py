@@ -25,6 +25,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ._data import _fail
+
 KINDS = ("psi_deg", "delta_deg", "N", "C", "S", "R", "R_s", "R_p", "T", "T_s", "T_p")
 _MUELLER = tuple(f"m{i}{j}" for i in range(1, 5) for j in range(1, 5))
 _NEAR = {"psi": "psi_deg", "delta": "delta_deg", "wavelength": "wavelength_nm or wavelength_um", "lambda": "wavelength_nm",
@@ -93,10 +95,6 @@ def _check_values(w, a, kinds, V, S, where):
         raise ValueError(f"{at}non-finite value of {kinds[i[-2]]} at point {i[-1]}")
     if S is not None and (not np.all(np.isfinite(S)) or np.any(S <= 0)):
         raise ValueError(f"{at}sigma must be finite and positive")
-
-
-def _fail(path, line, msg):
-    raise ValueError(f"{path}, line {line}: {msg}")
 
 
 def load_spectra(path: str | os.PathLike) -> Spectra:

@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ._fit_solver import _tol
 from ._sample import Sample
 from ._spectra import Spectra
 
@@ -431,7 +432,3 @@ def _blocked(f, args, size, on_block=None):
 
     out = jax.lax.map(body, (jnp.arange(nb), tuple(pad(a) for a in args)))
     return jax.tree.map(lambda y: y.reshape((nb * size,) + y.shape[2:])[:B], out)
-
-
-def _tol(dtype):
-    return max(1e-9, 100 * float(jnp.finfo(dtype).eps))
