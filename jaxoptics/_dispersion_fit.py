@@ -67,15 +67,15 @@ class DispersionFit(eqx.Module):
 
 
 def _initial(model, terms, lam, n):
-    """Linear least squares for the coefficients, given per-wavelength indices."""
-    lam, n = np.asarray(lam, np.float64), np.asarray(n, np.float64)
+    """Linear least squares for the coefficients, given per-wavelength indices (in JAX, so that
+    `fit_dispersion` traces under `jit` and `vmap`)."""
     if model == "cauchy":
-        A = np.stack([lam ** (-2 * k) for k in range(terms)], 1)
-        return np.linalg.lstsq(A, n, rcond=None)[0]
-    C = np.asarray(_SELLMEIER_POLES[terms])
+        A = jnp.stack([lam ** (-2 * k) for k in range(terms)], 1)
+        return jnp.linalg.lstsq(A, n)[0]
+    C = jnp.asarray(_SELLMEIER_POLES[terms], lam.dtype)
     l2 = lam[:, None] ** 2
-    B = np.linalg.lstsq(l2 / (l2 - C), n**2 - 1, rcond=None)[0]
-    return np.concatenate([B, C])
+    B = jnp.linalg.lstsq(l2 / (l2 - C[None, :]), n**2 - 1)[0]
+    return jnp.concatenate([B, C])
 
 
 @eqx.filter_jit
@@ -165,7 +165,7 @@ def fit_dispersion(wavelength_um: Float[ArrayLike, " w"], theta: Float[ArrayLike
     w = jnp.broadcast_to(w, R.shape)
     if init is None:
         per = fit_eta(theta, R, eta1=eta1, polarization=polarization, sigma=sigma)
-        p0 = jnp.asarray(_initial(model, terms, lam, per.eta), dt)
+        p0 = _initial(model, terms, lam, per.eta).astype(dt)
     else:
         p0 = jnp.asarray(init, dt)
         if p0.shape != (n_par,):

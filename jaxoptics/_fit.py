@@ -6,7 +6,7 @@ never an exception from inside the solver.
 
 The fit is spread over files by concern: `_fit_model` (the reflectance model and its
 derivatives), `_fit_starts` (starting points), `_fit_solver` (the batched optimistix solve and
-the standard errors), `_fit_followups` (refits and second branches on concrete data),
+the standard errors), `_fit_followups` (the whole fit as one program: refits, second branches, restarts),
 `_fit_result` (`FitResult`); this file holds the checks of the data and `fit_eta` itself.
 """
 
@@ -21,7 +21,7 @@ import numpy as np
 import optimistix as optx
 
 from . import _validate as V
-from ._fit_followups import _batch_shards, _fit_per_shard, _is_concrete, _solve
+from ._fit_followups import _batch_shards, _fit_differentiable, _fit_per_shard, _is_concrete
 from ._fit_model import POLARIZATIONS
 from ._fit_result import FitResult
 from ._fit_solver import _default_solver, _tol
@@ -121,7 +121,7 @@ def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, e
     - `absorbing`: fit a complex index `n + ik` (metals, absorbing media).
     - `solver`: an optimistix least-squares solver. Default: `optimistix.GaussNewton` for a real
       index, with `OneColumnLeastSquares` as its linear solver (curves it does not converge on are
-      refitted with `optimistix.LevenbergMarquardt` in a second batched call),
+      refitted with `optimistix.LevenbergMarquardt` in the same compiled call),
       `optimistix.LevenbergMarquardt` for a complex one; tolerances from the dtype. The choice was
       measured: see `_default_solver`.
     - `max_steps`: solver iteration cap; hitting it gives `converged=False`.
@@ -130,16 +130,19 @@ def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, e
 
     **Two branches (real fits):** a medium less dense than the incident one (`eta2 < eta1`) and a
     denser one can give similar curves below the critical angle. Curves whose other branch may fit
-    as well are solved on it too, in one more batched call over just those curves; the smaller
+    as well are solved on it too, in the same compiled call (over just those curves); the smaller
     chi-square wins, and where the other is within `Delta chi2 < 9` it is reported as `eta_alt` and
     included in `stderr` (see `FitResult`).
 
     **Errors:** degenerate data raise a `ValueError` before any solving: fewer than `p + 1` angles,
     non-finite values, angles outside `[0, pi/2]`, a constant curve, non-positive `sigma`, unknown
     polarization, shapes that do not match. (Under an outer `jit` only shapes are checked; NaN data
-    then give `converged=False`; the Levenberg-Marquardt refit and the second-branch solve, which
-    pick curves on the host, are skipped there.) Failures of the solver are reported as
-    `converged=False`, never raised.
+    then give `converged=False`.) Failures of the solver are reported as `converged=False`, never
+    raised.
+
+    **Inside JAX programs:** the fit, with its Levenberg-Marquardt refit and its second-branch
+    solves, is one pure JAX program: called eagerly, under `jax.jit` or under `jax.vmap` it gives
+    the same results to rounding.
 
     **Dtype:** the fit runs in the floating dtype of `R`; with `jax_enable_x64` off, float64 NumPy
     data are fitted in float32 and a warning says so.
@@ -172,12 +175,13 @@ def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, e
         y_init = jnp.zeros((Rf.shape[0], p), dt)
     retry = solver is None and not absorbing
     solver = _default_solver(dt, absorbing) if solver is None else solver
-    kw = dict(polarization=polarization, absorbing=absorbing, max_steps=int(max_steps), sigma_given=sigma is not None)
-    eta1_arr = jnp.asarray(eta1, dt)
     lm: optx.LevenbergMarquardt | None = optx.LevenbergMarquardt(rtol=_tol(dt), atol=_tol(dt)) if retry else None
+    kw = dict(polarization=polarization, absorbing=absorbing, max_steps=int(max_steps), sigma_given=sigma is not None,
+              solver=solver, lm=lm, use_init=use_init)
+    eta1_arr = jnp.asarray(eta1, dt)
     shards = _batch_shards(Rf)
     if shards is None:
-        res = _solve(theta, Rf, w, eta1_arr, y_init, solver, lm, use_init, kw)
+        res = _fit_differentiable(theta, Rf, w, eta1_arr, y_init, kw)
     else:
-        res = _fit_per_shard(shards, theta, Rf, w, eta1_arr, y_init, solver, lm, use_init, kw)
+        res = _fit_per_shard(shards, theta, Rf, w, eta1_arr, y_init, kw)
     return jax.tree_util.tree_map(lambda x: x.reshape(batch + x.shape[1:]), res)

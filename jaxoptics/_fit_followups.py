@@ -1,26 +1,24 @@
-"""Follow-up solves of the index fits on concrete data: the Levenberg-Marquardt refit of
-curves Gauss-Newton did not converge on, the second branch of ambiguous internal-reflection
-curves, the restart of absorbing fits, and the per-device fits of a sharded batch."""
+"""The whole index fit as one compiled program: the batched solve and its follow-ups (the
+Levenberg-Marquardt refit of curves Gauss-Newton did not converge on, the second branch of
+ambiguous internal-reflection curves, the restart of absorbing fits), and the per-device fits of
+a sharded batch.
+
+The follow-ups are masked solves inside the program (`_solve_masked`): the curves that need one
+are gathered to the front and solved a block at a time in a `lax.while_loop` whose trip count is
+the number of such curves over the block size (zero when none needs it). Nothing goes to the
+host, so `fit_eta` gives the same result eagerly, under `jax.jit` and under `jax.vmap`.
+"""
 
 from __future__ import annotations
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
-from ._fit_solver import _fit_batch
-
-
-def _refit(res, theta, R, w, eta1, y_init, lm, use_init, kw):
-    """Gauss-Newton is fast but undamped: refit whatever it did not converge on with
-    Levenberg-Marquardt, in one more batched call over just those curves."""
-    bad = np.flatnonzero(~np.asarray(res.converged))
-    if not bad.size:
-        return res
-    pad = _bucket(bad)
-    sub, _, _ = _fit_batch(theta, R[pad], w[pad], eta1, y_init[pad], solver=lm, use_init=use_init, **kw)
-    return jax.tree_util.tree_map(lambda a, b: a.at[bad].set(b[:bad.size]), res, sub)
-
+from ._fit_model import _reflectance
+from ._fit_result import FitResult
+from ._fit_solver import _errors, _fit_batch, _fit_block
 
 # Curves whose start on the other branch fits within this factor of the solution's sum of
 # squares (on the start's 16 angles) are solved on that branch too (see `_second_branch`).
@@ -31,24 +29,49 @@ def _refit(res, theta, R, w, eta1, y_init, lm, use_init, kw):
 _BRANCH_RATIO = 4.0
 _AMBIGUOUS_DCHI2 = 9.0
 
-
-def _bucket(idx):
-    """`idx` padded (with its first entry) to a power of two: subsets of a batch solved in a second
-    call then reuse a few compiled shapes instead of compiling one per count."""
-    n = 1 << max(int(idx.size) - 1, 0).bit_length()
-    return np.concatenate([idx, np.full(n - idx.size, idx[0])])
+# Curves per block of a follow-up solve. A vmapped solve runs until its slowest member stops, and
+# a block is solved whole even when only some of its curves need it.
+_FOLLOWUP_BLOCK = 64
 
 
-def _solve_subset(res, idx, starts, theta, R, w, eta1, solver, lm, kw):
-    """The curves `idx` solved again from `starts[idx]` in one batched call (padded, see `_bucket`;
-    Levenberg-Marquardt refitting what Gauss-Newton does not converge on, when `lm` is given):
-    (their new fits, their current fits), both as NumPy pytrees."""
-    pad = _bucket(idx)
-    sub, _, _ = _fit_batch(theta, R[pad], w[pad], eta1, starts[pad], solver=solver, use_init=True, **kw)
-    if lm is not None:
-        sub = _refit(sub, theta, R[pad], w[pad], eta1, starts[pad], lm, True, kw)
-    return (jax.tree_util.tree_map(lambda a: np.asarray(a[:idx.size]), sub),
-            jax.tree_util.tree_map(lambda a: np.asarray(a[idx]), res))
+def _where(mask, a, b):
+    """`a` where `mask` (one flag per curve) else `b`, leaf by leaf of two pytrees."""
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
+
+
+def _solve_masked(mask, starts, res, theta, R, w, eta1, solver, lm, kw):
+    """The curves where `mask` solved again from `starts` (with `solver`, then with `lm` where that
+    does not converge, when `lm` is given): a `FitResult` over the whole batch, equal to `res`
+    where `mask` is false.
+
+    The masked curves are gathered to the front (one stable argsort) and solved `_FOLLOWUP_BLOCK`
+    at a time in a `while_loop` that runs `ceil(count / block)` times: the cost follows the number
+    of curves that need the solve, and is a sort and a reduction when none does.
+    """
+    B = R.shape[0]
+    K = min(B, _FOLLOWUP_BLOCK)
+    order = jnp.argsort(~mask, stable=True)
+    count = jnp.sum(mask)
+
+    def block(idx):
+        sub = _fit_block(theta, R[idx], w[idx], eta1, starts[idx], solver=solver, use_init=True, **kw)[0]
+        if lm is None:
+            return sub
+        again = lambda: _where(sub.converged, sub, _fit_block(theta, R[idx], w[idx], eta1, starts[idx], solver=lm,
+                                                                use_init=True, **kw)[0])
+        return jax.lax.cond(jnp.all(sub.converged), lambda: sub, again)
+
+    def body(carry):
+        i, out = carry
+        pos = i * K + jnp.arange(K)
+        sel = pos < count
+        idx = order[jnp.minimum(pos, B - 1)]
+        sub = block(idx)
+        dst = jnp.where(sel, idx, B)  # out of bounds: dropped
+        return i + 1, jax.tree_util.tree_map(lambda a, b: a.at[dst].set(b, mode="drop"), out, sub)
+
+    n_blocks = (count + K - 1) // K
+    return jax.lax.while_loop(lambda c: c[0] < n_blocks, body, (jnp.zeros((), count.dtype), res))[1]
 
 
 def _second_branch(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
@@ -57,39 +80,32 @@ def _second_branch(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
     Below the critical angle, internal-reflection curves (eta2 < eta1) and curves of a denser
     medium (eta2 > eta1) look alike. Where the data stop short of what tells them apart, the start
     can pick the branch that fits worse, and Gauss-Newton then converges to that branch's minimum
-    with a small, local standard error: a confident wrong answer (measured before this: 2.5% of
-    noisy internal-reflection fits over 20-70 degrees, |z| up to 27). Curves whose other-branch
-    start fits within `_BRANCH_RATIO` of the solution are solved from it in one more batched call
-    (none where the branches are told apart, e.g. 0-85 degrees). The smaller chi-square wins; where
-    the other is within `Delta chi2 < 9`, it becomes `eta_alt` and the standard error includes the
-    distance to it. (With `Delta chi2 < 4`, 1% of noisy fits at 0-30 degrees still had |z| up to
-    385: the branch the data preferred by a chi-square of 5 was the wrong one.)
+    with a small, local standard error: a confident wrong answer (2.5% of noisy internal-reflection
+    fits over 20-70 degrees, |z| up to 27, are of this kind without this solve). Curves whose
+    other-branch start fits within `_BRANCH_RATIO` of the solution are solved from it (none where
+    the branches are told apart, e.g. 0-85 degrees). The smaller chi-square wins; where the other
+    is within `Delta chi2 < 9`, it becomes `eta_alt` and the standard error includes the distance
+    to it. (With `Delta chi2 < 4`, 1% of noisy fits at 0-30 degrees still had |z| up to 385: the
+    branch the data preferred by a chi-square of 5 was the wrong one.)
     """
-    amb = np.flatnonzero(np.asarray(ratio) <= _BRANCH_RATIO)
-    if not amb.size:
-        return res
-    sub, mine = _solve_subset(res, amb, alt, theta, R, w, eta1, solver, lm, kw)
-    e1 = float(eta1)
-    other = sub.converged & ((sub.eta < e1) != (mine.eta < e1))
+    amb = ratio <= _BRANCH_RATIO
+    sub = _solve_masked(amb, alt, res, theta, R, w, eta1, solver, lm, kw)
+    mine = res
+    other = amb & sub.converged & ((sub.eta < eta1) != (mine.eta < eta1))
     dof = R.shape[-1] - 1
     # chi-square in units of the noise: the reduced chi-square estimates it without sigma; with
     # sigma, data scattering more than stated widen it as in `_covariance`
-    scale = mine.chi2_reduced if not kw["sigma_given"] else np.maximum(mine.chi2_reduced, 1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        dchi2 = (sub.chi2_reduced - mine.chi2_reduced) * dof / scale
+    scale = mine.chi2_reduced if not kw["sigma_given"] else jnp.maximum(mine.chi2_reduced, 1)
+    dchi2 = (sub.chi2_reduced - mine.chi2_reduced) * dof / jnp.where(other, scale, 1)
     swap = other & (~mine.converged | (dchi2 < 0))
-    near = other & mine.converged & (np.abs(dchi2) < _AMBIGUOUS_DCHI2)
-    win = jax.tree_util.tree_map(lambda a, b: np.where(swap.reshape((-1,) + (1,) * (a.ndim - 1)), b, a), mine, sub)
-    lose_eta = np.where(swap, mine.eta, sub.eta)
-    gap2 = np.where(near, (win.eta - lose_eta) ** 2, 0)
+    near = other & mine.converged & (jnp.abs(dchi2) < _AMBIGUOUS_DCHI2)
+    win = _where(swap, sub, mine)
+    lose_eta = jnp.where(swap, mine.eta, sub.eta)
+    gap2 = jnp.where(near, (win.eta - lose_eta) ** 2, 0)
     win = eqx.tree_at(lambda r: (r.eta_alt, r.stderr, r.covariance), win,
-                      (np.where(near, lose_eta, np.nan), np.sqrt(win.stderr ** 2 + gap2),
+                      (jnp.where(near, lose_eta, jnp.nan).astype(win.eta_alt.dtype), jnp.sqrt(win.stderr ** 2 + gap2),
                        win.covariance + gap2[:, None, None]))
-    changed = swap | near
-    if not changed.any():
-        return res
-    idx = amb[changed]
-    return jax.tree_util.tree_map(lambda a, b: a.at[idx].set(b[changed]), res, win)
+    return _where(swap | near, win, res)
 
 
 def _absorbing_restart(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
@@ -104,31 +120,91 @@ def _absorbing_restart(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
     46, chi-square 20 to 150 times the noise; e.g. 3.36 + 0i for 2.97 + 1.01i). Curves whose data
     are of a non-absorbing medium come back to k near 0 and keep their first fit.
     """
-    again = np.flatnonzero(np.asarray(ratio) == 0)
-    if not again.size:
-        return res
-    sub, mine = _solve_subset(res, again, alt, theta, R, w, eta1, solver, lm, kw)
-    better = sub.converged & (~mine.converged | (sub.chi2_reduced < mine.chi2_reduced))
-    if not better.any():
-        return res
-    idx = again[better]
-    return jax.tree_util.tree_map(lambda a, b: a.at[idx].set(b[better]), res, sub)
+    again = ratio == 0
+    sub = _solve_masked(again, alt, res, theta, R, w, eta1, solver, lm, kw)
+    better = again & sub.converged & (~res.converged | (sub.chi2_reduced < res.chi2_reduced))
+    return _where(better, sub, res)
 
 
-def _solve(theta, R, w, eta1, y_init, solver, lm, use_init, kw, first=None):
-    """The batched fit and, on concrete data, its follow-ups: the Levenberg-Marquardt refit of
-    curves Gauss-Newton did not converge on, and the second branch of ambiguous curves. `first`:
-    the batched fit's output when already dispatched."""
-    res, alt, ratio = first if first is not None else _fit_batch(theta, R, w, eta1, y_init, solver=solver,
-                                                                  use_init=use_init, **kw)
-    if not _is_concrete(R, w):
-        return res
+@eqx.filter_jit
+def _solve(theta, R, w, eta1, y_init, *, solver, lm, use_init, **kw):
+    """The batched fit and its follow-ups, in one program: the Levenberg-Marquardt refit (`lm`,
+    from the same start) of curves Gauss-Newton did not converge on, and, for fits started from
+    the grid, the second branch of ambiguous curves or the restart of absorbing ones."""
+    res, start, alt, ratio = _fit_batch(theta, R, w, eta1, y_init, solver=solver, use_init=use_init, **kw)
     if lm is not None:
-        res = _refit(res, theta, R, w, eta1, y_init, lm, use_init, kw)
+        res = _solve_masked(~res.converged, start, res, theta, R, w, eta1, lm, None, kw)
     if not use_init:
         again = _absorbing_restart if kw["absorbing"] else _second_branch
         res = again(res, alt, ratio, theta, R, w, eta1, solver, lm, kw)
     return res
+
+
+def _fit_differentiable(theta, R, w, eta1, y_init, kw):
+    """`_solve`, with derivatives in the data (`theta`, `R`, `w`, `eta1`) by the implicit
+    function theorem; no derivative passes through the solver's loops (see `_implicit_jvp`)."""
+    fit = jax.custom_jvp(lambda theta, R, w, eta1, y_init: _solve(theta, R, w, eta1, y_init, **kw))
+    fit.defjvp(lambda primals, tangents: _implicit_jvp(primals, tangents, kw))
+    return fit(theta, R, w, eta1, y_init)
+
+
+def _implicit_jvp(primals, tangents, kw):
+    r"""Forward-mode derivative of the fit (reverse mode by transposition).
+
+    The estimate q (eta, or n and k) is a minimum of `L(q, x) = sum(r^2) / 2` over the data
+    x = (theta, R, 1/sigma, eta1), so `grad_q L(q(x), x) = 0` and, by the implicit function
+    theorem, `dq = -H^{-1} (d grad_q L / dx) dx` with `H` the Hessian of L in q (exact, with the
+    residuals' curvature: the data need not fit). It is evaluated at the solution with the exact
+    reflectance kernel, so neither the start, nor the grid, nor the number of solver steps enters.
+    The other fields (errors, covariance, chi-square, rms) are differentiated through their
+    formulas at the estimate, with `dq` as the estimate's tangent; `eta_alt` has its own implicit
+    derivative. The start `y_init` has none: the minimum does not depend on it. Where the fit did
+    not converge, every tangent is NaN.
+    """
+    theta, R, w, eta1, y_init = primals
+    dtheta, dR, dw, deta1, _ = tangents
+    pol, absorbing, sg = kw["polarization"], kw["absorbing"], kw["sigma_given"]
+    res = _solve(theta, R, w, eta1, y_init, **kw)
+    to_q = lambda eta: jnp.stack([jnp.real(eta), jnp.imag(eta)], -1) if absorbing else eta[:, None]
+    to_eta = lambda q: jax.lax.complex(q[..., 0], q[..., 1]) if absorbing else q[..., 0]
+
+    def residuals(q, th, R1, w1, e1):
+        r = _reflectance(jnp.cos(th), e1, to_eta(q), pol) - R1
+        return r * w1 if sg else r
+
+    def grad_loss(q, th, R1, w1, e1):
+        return jax.grad(lambda q: 0.5 * jnp.sum(residuals(q, th, R1, w1, e1) ** 2))(q)
+
+    def dq_one(q, R1, w1, dR1, dw1):
+        H = jax.jacfwd(grad_loss)(q, theta, R1, w1, eta1)
+        dF = jax.jvp(lambda th, r1, v1, e1: grad_loss(q, th, r1, v1, e1), (theta, R1, w1, eta1),
+                     (dtheta, dR1, dw1, deta1))[1]
+        return -jnp.linalg.solve(H, dF)
+
+    q = to_q(res.eta)
+    dq = jax.vmap(dq_one)(q, R, w, dR, dw)
+    has_alt = jnp.isfinite(res.eta_alt)
+    q_alt = jnp.where(has_alt, res.eta_alt, res.eta)[:, None] if not absorbing else q
+    dq_alt = jnp.where(has_alt[:, None], jax.vmap(dq_one)(q_alt, R, w, dR, dw), 0) if not absorbing else jnp.zeros_like(dq)
+
+    def fields(q, q_alt, th, R, w, e1):
+        one = lambda q1, R1, w1: _errors(_reflectance, jnp.cos(th), R1, w1 if sg else None, e1, q1,
+                                         polarization=pol, absorbing=absorbing, sigma_given=sg)
+        cov, se, rms, chi2 = jax.vmap(one)(q, R, w)
+        if absorbing:
+            return jax.lax.complex(se[:, 0], se[:, 1]), cov, rms, chi2
+        gap2 = jnp.where(has_alt, (q[:, 0] - q_alt[:, 0]) ** 2, 0)
+        return jnp.sqrt(se[:, 0] ** 2 + gap2), cov + gap2[:, None, None], rms, chi2
+
+    _, (d_se, d_cov, d_rms, d_chi2) = jax.jvp(fields, (q, q_alt, theta, R, w, eta1), (dq, dq_alt, dtheta, dR, dw, deta1))
+    bad = ~res.converged
+    # a product, not a select: it transposes to the same NaN factor, so reverse mode sees it too
+    scale = jnp.where(bad, jnp.nan, 1.0).astype(res.residual_rms.dtype)
+    nan = lambda t: t * scale.astype(t.dtype).reshape((-1,) + (1,) * (t.ndim - 1))
+    zero = lambda x: np.zeros(x.shape, jax.dtypes.float0)
+    tangent = FitResult(nan(to_eta(dq)), nan(d_se), nan(d_cov), zero(res.converged), nan(d_rms), nan(d_chi2),
+                        zero(res.num_steps), nan(jnp.where(has_alt, dq_alt[:, 0], 0)))
+    return res, tangent
 
 
 def _batch_shards(R):
@@ -149,7 +225,7 @@ def _batch_shards(R):
     return shards
 
 
-def _fit_per_shard(shards, theta, R, w, eta1, y_init, solver, lm, use_init, kw):
+def _fit_per_shard(shards, theta, R, w, eta1, y_init, kw):
     """Fit each device's block of curves on that device, then assemble the sharded result.
 
     Each device runs its own vmapped solver loop: no data move and no cross-device reduction in
@@ -158,16 +234,10 @@ def _fit_per_shard(shards, theta, R, w, eta1, y_init, solver, lm, use_init, kw):
     """
     sh = R.sharding
     results = []
-    for s in shards:  # dispatch all first: the devices work concurrently
+    for s in shards:  # dispatched one after the other without waiting: the devices work concurrently
         sl = s.index[0]
         put = lambda x: jax.device_put(x, s.device)
-        results.append(_fit_batch(put(theta), s.data, put(w[sl]), put(eta1), put(y_init[sl]), solver=solver,
-                                  use_init=use_init, **kw))
-    for k, s in enumerate(shards):
-        sl = s.index[0]
-        put = lambda x: jax.device_put(x, s.device)
-        results[k] = _solve(put(theta), s.data, put(w[sl]), put(eta1), put(y_init[sl]), solver, lm, use_init, kw,
-                            first=results[k])
+        results.append(_solve(put(theta), s.data, put(w[sl]), put(eta1), put(y_init[sl]), **kw))
     P = jax.sharding.PartitionSpec
     ax = sh.spec[0]
 

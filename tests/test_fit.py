@@ -1,6 +1,8 @@
 """Index fitting: recovery of known indices (data from tmm, an independent implementation),
 statistical honesty of the errors, batching, degenerate data, the CSV reader and the CLI."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -11,6 +13,98 @@ import jaxoptics as jo
 from jaxoptics.__main__ import main  # in-process calls pass --no-cache: the compilation cache is process-wide
 
 THETA = np.deg2rad(np.linspace(0, 85, 90))
+
+
+# ---- every fit in this file, also under jax.jit and jax.vmap ----
+
+# How closely a fit under jit or vmap must agree with the eager one. The programs differ (XLA fuses
+# the caller's operations, vmap batches the loops), so rounding differs, and an iterative solve
+# stops within its tolerance (rtol 1e-9) of the minimum, not on the same bits; Levenberg-Marquardt
+# near that tolerance can take many more or fewer steps to stop. So: estimates agree to 1e-7
+# relative (100x the tolerance) or to 1e-3 of their standard error; errors, covariances and
+# chi-square (first-order quantities at the estimate, themselves known only to about 10%) to 1e-3
+# relative, where they are not rounding (an error below 1e-9 of the estimate, on noise-free data);
+# convergence flags exactly; step counts are not compared.
+_ESTIMATES = ("eta", "eta_alt")
+
+
+def _parts(x):
+    x = np.asarray(x)
+    return np.stack([x.real, x.imag]) if np.iscomplexobj(x) else x
+
+
+def _assert_same(got, want, how):
+    """Every field of two fit results (dicts of field name to array) the same, to the solver's
+    tolerance (see above)."""
+    est, se = _parts(want["eta"]), _parts(want["stderr"])
+    small = 1e-9 * np.max(np.abs(est[np.isfinite(est)]), initial=0)  # an error below this is rounding
+    assert got.keys() == want.keys()
+    for name in want:
+        if name == "num_steps":
+            continue
+        a, b = _parts(want[name]), _parts(got[name])
+        if a.dtype.kind == "b":
+            np.testing.assert_array_equal(b, a, err_msg=f"{how}: {name}")
+            continue
+        with np.errstate(invalid="ignore"):
+            if name in _ESTIMATES:
+                tol = np.maximum(1e-7 * np.abs(a), 1e-3 * np.where(np.isfinite(se), se, 0))
+            elif name == "stderr":
+                tol = np.maximum(1e-3 * np.abs(a), small)
+            elif name == "covariance":
+                d = np.abs(np.diagonal(a, axis1=-2, axis2=-1))
+                tol = 1e-3 * np.sqrt(d[..., :, None] * d[..., None, :]) + small ** 2
+            else:  # residual_rms, chi2_reduced, condition_number
+                tol = 1e-3 * np.abs(a) + 1e-13 * (name == "residual_rms") + 1e-20 * (name == "chi2_reduced")
+            ok = (np.isnan(a) & np.isnan(b)) | (a == b) | (np.abs(b - a) <= tol)
+        assert ok.all(), f"{how}: {name}: {np.count_nonzero(~ok)} of {ok.size} differ, e.g. {b[~ok][:3]} against {a[~ok][:3]}"
+
+
+def _fields(fit):
+    return {f.name: getattr(fit, f.name) for f in dataclasses.fields(fit)}
+
+
+def _checked_fit_eta(theta, R, *, sigma=None, init=None, **kw):
+    """`fit_eta` called eagerly, then under `jax.jit` and, for a batch, under `jax.vmap` over its
+    leading axis: the three agree (the fit and its follow-up solves are one JAX program, whatever
+    the caller does with it)."""
+    if any(isinstance(x, jax.core.Tracer) for x in (theta, R, sigma, init)):  # a test's own jit
+        return _fit_eta(theta, R, sigma=sigma, init=init, **kw)
+    eager = _fit_eta(theta, R, sigma=sigma, init=init, **kw)  # raises on bad data, before tracing
+    one = lambda th, r, s, i: _fields(_fit_eta(th, r, sigma=s, init=i, **kw))
+    _assert_same(jax.jit(one)(theta, R, sigma, init), _fields(eager), "jit")
+    if np.ndim(R) >= 2:  # vmap over the leading axis, on its first few entries (each compile costs)
+        n, k = np.shape(R)[0], min(np.shape(R)[0], 4)
+        mapped = lambda x, ndim: 0 if x is not None and np.ndim(x) == ndim and np.shape(x)[0] == n else None
+        s_ax, i_ax = mapped(sigma, np.ndim(R)), mapped(init, np.ndim(R) - 1)
+        head = lambda x, ax: x if ax is None else x[:k]
+        got = jax.vmap(one, in_axes=(None, 0, s_ax, i_ax))(theta, R[:k], head(sigma, s_ax), head(init, i_ax))
+        _assert_same(got, jax.tree_util.tree_map(lambda x: x[:k], _fields(eager)), "vmap")
+    return eager
+
+
+def _checked_fit_dispersion(wavelength_um, theta, R, **kw):
+    """`fit_dispersion` eagerly and under `jax.jit`: the same index curve. (Compared through the
+    fitted index at the data's wavelengths: Sellmeier coefficients lie along flat valleys, where
+    solves that stop within tolerance can end far apart with the same index.)"""
+    def summary(fit, lam):
+        n, se = fit.index(lam)
+        return {"eta": n, "stderr": se, "converged": fit.converged, "chi2_reduced": fit.chi2_reduced,
+                "residual_rms": fit.residual_rms}
+
+    eager = _fit_dispersion(wavelength_um, theta, R, **kw)
+    jitted = jax.jit(lambda l, th, r: summary(_fit_dispersion(l, th, r, **kw), l))(wavelength_um, theta, R)
+    _assert_same(jitted, summary(eager, wavelength_um), "jit")
+    return eager
+
+
+_fit_eta, _fit_dispersion = jo.fit_eta, jo.fit_dispersion
+
+
+@pytest.fixture(autouse=True)
+def _fits_both_ways(monkeypatch):
+    monkeypatch.setattr(jo, "fit_eta", _checked_fit_eta)
+    monkeypatch.setattr(jo, "fit_dispersion", _checked_fit_dispersion)
 
 
 def tmm_curve(n1, n2, theta, pol):
