@@ -6,7 +6,7 @@ never an exception from inside the solver.
 
 The fit is spread over files by concern: `_fit_model` (the reflectance model and its
 derivatives), `_fit_starts` (starting points), `_fit_solver` (the batched optimistix solve and
-the standard errors), `_fit_followups` (the whole fit as one program: refits, second branches, restarts),
+the standard errors), `_fit_followups` (refits, second branches, restarts in JAX; derivatives of fits),
 `_fit_result` (`FitResult`); this file holds the checks of the data and `fit_eta` itself.
 """
 
@@ -21,7 +21,7 @@ import numpy as np
 import optimistix as optx
 
 from . import _validate as V
-from ._fit_followups import _batch_shards, _fit_differentiable, _fit_per_shard, _is_concrete
+from ._fit_followups import _batch_shards, _fit_differentiable, _fit_per_shard, _is_concrete, _solve_stages
 from ._fit_model import POLARIZATIONS
 from ._fit_result import FitResult
 from ._fit_solver import _default_solver, _tol
@@ -141,8 +141,11 @@ def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, e
     raised.
 
     **Inside JAX programs:** the fit, with its Levenberg-Marquardt refit and its second-branch
-    solves, is one pure JAX program: called eagerly, under `jax.jit` or under `jax.vmap` it gives
-    the same results to rounding.
+    solves, is pure JAX: called eagerly, under `jax.jit` or under `jax.vmap` it runs the same
+    solves on the same curves and agrees to the solver's tolerance. (Eagerly, a follow-up stage is
+    compiled only when some curve needs it.) It is differentiable in `R`, `theta`, `eta1` and
+    `sigma` by the implicit function theorem at the solution; where `converged` is false the
+    derivatives are NaN.
 
     **Dtype:** the fit runs in the floating dtype of `R`; with `jax_enable_x64` off, float64 NumPy
     data are fitted in float32 and a warning says so.
@@ -181,7 +184,9 @@ def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, e
     eta1_arr = jnp.asarray(eta1, dt)
     shards = _batch_shards(Rf)
     if shards is None:
-        res = _fit_differentiable(theta, Rf, w, eta1_arr, y_init, kw)
+        # concrete: nothing to differentiate, the follow-up stages compiled only when needed
+        fit = _solve_stages if _is_concrete(theta, Rf, w, eta1_arr, y_init) else _fit_differentiable
+        res = fit(theta, Rf, w, eta1_arr, y_init, kw)
     else:
         res = _fit_per_shard(shards, theta, Rf, w, eta1_arr, y_init, kw)
     return jax.tree_util.tree_map(lambda x: x.reshape(batch + x.shape[1:]), res)

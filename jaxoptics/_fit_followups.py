@@ -1,12 +1,12 @@
-"""The whole index fit as one compiled program: the batched solve and its follow-ups (the
-Levenberg-Marquardt refit of curves Gauss-Newton did not converge on, the second branch of
-ambiguous internal-reflection curves, the restart of absorbing fits), and the per-device fits of
-a sharded batch.
+"""The index fit's follow-ups in JAX (the Levenberg-Marquardt refit of curves Gauss-Newton did
+not converge on, the second branch of ambiguous internal-reflection curves, the restart of
+absorbing fits), the fit's derivatives by the implicit function theorem, and the per-device fits
+of a sharded batch.
 
-The follow-ups are masked solves inside the program (`_solve_masked`): the curves that need one
-are gathered to the front and solved a block at a time in a `lax.while_loop` whose trip count is
-the number of such curves over the block size (zero when none needs it). Nothing goes to the
-host, so `fit_eta` gives the same result eagerly, under `jax.jit` and under `jax.vmap`.
+The follow-ups are masked solves (`_solve_masked`): the curves that need one are gathered to the
+front and solved a block at a time in a `lax.while_loop` whose trip count is the number of such
+curves over the block size. No curve is picked on the host, so `fit_eta` gives the same result
+eagerly, under `jax.jit` and under `jax.vmap` (see `_solve` for when each stage is compiled).
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def _second_branch(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
     to it. (With `Delta chi2 < 4`, 1% of noisy fits at 0-30 degrees still had |z| up to 385: the
     branch the data preferred by a chi-square of 5 was the wrong one.)
     """
-    amb = ratio <= _BRANCH_RATIO
+    amb = _needs_branch(ratio, False)
     sub = _solve_masked(amb, alt, res, theta, R, w, eta1, solver, lm, kw)
     mine = res
     other = amb & sub.converged & ((sub.eta < eta1) != (mine.eta < eta1))
@@ -120,24 +120,60 @@ def _absorbing_restart(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
     46, chi-square 20 to 150 times the noise; e.g. 3.36 + 0i for 2.97 + 1.01i). Curves whose data
     are of a non-absorbing medium come back to k near 0 and keep their first fit.
     """
-    again = ratio == 0
+    again = _needs_branch(ratio, True)
     sub = _solve_masked(again, alt, res, theta, R, w, eta1, solver, lm, kw)
     better = again & sub.converged & (~res.converged | (sub.chi2_reduced < res.chi2_reduced))
     return _where(better, sub, res)
 
 
 @eqx.filter_jit
-def _solve(theta, R, w, eta1, y_init, *, solver, lm, use_init, **kw):
-    """The batched fit and its follow-ups, in one program: the Levenberg-Marquardt refit (`lm`,
-    from the same start) of curves Gauss-Newton did not converge on, and, for fits started from
-    the grid, the second branch of ambiguous curves or the restart of absorbing ones."""
-    res, start, alt, ratio = _fit_batch(theta, R, w, eta1, y_init, solver=solver, use_init=use_init, **kw)
-    if lm is not None:
-        res = _solve_masked(~res.converged, start, res, theta, R, w, eta1, lm, None, kw)
-    if not use_init:
-        again = _absorbing_restart if kw["absorbing"] else _second_branch
-        res = again(res, alt, ratio, theta, R, w, eta1, solver, lm, kw)
+def _first(theta, R, w, eta1, y_init, **kw):
+    """The batched solve, and whether any curve needs the refit or the branch stage."""
+    res, start, alt, ratio = _fit_batch(theta, R, w, eta1, y_init, **kw)
+    return res, start, alt, ratio, jnp.stack([~jnp.all(res.converged), jnp.any(_needs_branch(ratio, kw["absorbing"]))])
+
+
+@eqx.filter_jit
+def _refit_stage(res, start, theta, R, w, eta1, lm, kw):
+    return _solve_masked(~res.converged, start, res, theta, R, w, eta1, lm, None, kw)
+
+
+@eqx.filter_jit
+def _branch_stage(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
+    again = _absorbing_restart if kw["absorbing"] else _second_branch
+    return again(res, alt, ratio, theta, R, w, eta1, solver, lm, kw)
+
+
+def _needs_branch(ratio, absorbing):
+    return ratio == 0 if absorbing else ratio <= _BRANCH_RATIO
+
+
+def _solve(theta, R, w, eta1, y_init, *, solver, lm, use_init, first=None, **kw):
+    """The batched fit and its follow-ups: the Levenberg-Marquardt refit (`lm`, from the same
+    start) of curves Gauss-Newton did not converge on, and, for fits started from the grid, the
+    second branch of ambiguous curves or the restart of absorbing ones.
+
+    Traced (inside the caller's `jit` or `vmap`), every stage is part of the one program, and a
+    stage's loop runs zero times when no curve needs it. Called on concrete arrays, each stage is
+    its own compiled call, compiled and run only when some curve needs it (one scalar read on the
+    host decides): the first call of a fit that needs no follow-up compiles only the batched
+    solve. Both ways run the same solves on the same curves. `first`: the batched solve's output
+    when already dispatched.
+    """
+    res, start, alt, ratio, needs = first if first is not None else _first(theta, R, w, eta1, y_init, solver=solver,
+                                                                           use_init=use_init, **kw)
+    refit = branch = True
+    if _is_concrete(theta, R, w, eta1, y_init):
+        refit, branch = np.asarray(needs)  # one read from the device for both decisions
+    if lm is not None and refit:
+        res = _refit_stage(res, start, theta, R, w, eta1, lm, kw)
+    if not use_init and branch:
+        res = _branch_stage(res, alt, ratio, theta, R, w, eta1, solver, lm, kw)
     return res
+
+
+def _solve_stages(theta, R, w, eta1, y_init, kw):
+    return _solve(theta, R, w, eta1, y_init, **kw)
 
 
 def _fit_differentiable(theta, R, w, eta1, y_init, kw):
@@ -234,10 +270,15 @@ def _fit_per_shard(shards, theta, R, w, eta1, y_init, kw):
     """
     sh = R.sharding
     results = []
-    for s in shards:  # dispatched one after the other without waiting: the devices work concurrently
+    for s in shards:  # dispatch all first: the devices work concurrently
         sl = s.index[0]
         put = lambda x: jax.device_put(x, s.device)
-        results.append(_solve(put(theta), s.data, put(w[sl]), put(eta1), put(y_init[sl]), **kw))
+        results.append(_first(put(theta), s.data, put(w[sl]), put(eta1), put(y_init[sl]),
+                              **{k: v for k, v in kw.items() if k != "lm"}))
+    for k, s in enumerate(shards):
+        sl = s.index[0]
+        put = lambda x: jax.device_put(x, s.device)
+        results[k] = _solve(put(theta), s.data, put(w[sl]), put(eta1), put(y_init[sl]), first=results[k], **kw)
     P = jax.sharding.PartitionSpec
     ax = sh.spec[0]
 
