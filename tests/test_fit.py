@@ -2,6 +2,7 @@
 statistical honesty of the errors, batching, degenerate data, the CSV reader and the CLI."""
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -71,24 +72,38 @@ def _checked_fit_eta(theta, R, *, sigma=None, init=None, **kw):
     if any(isinstance(x, jax.core.Tracer) for x in (theta, R, sigma, init)):  # a test's own jit
         return _fit_eta(theta, R, sigma=sigma, init=init, **kw)
     eager = _fit_eta(theta, R, sigma=sigma, init=init, **kw)  # raises on bad data, before tracing
-    one = lambda th, r, s, i: _fields(_fit_eta(th, r, sigma=s, init=i, **kw))
-    _assert_same(jax.jit(one)(theta, R, sigma, init), _fields(eager), "jit")
+    _assert_same(_jit_fit_eta(theta, R, sigma, init, tuple(sorted(kw.items()))), _fields(eager), "jit")
     return eager
+
+
+@functools.partial(jax.jit, static_argnames="kw")
+def _jit_fit_eta(theta, R, sigma, init, kw):
+    """One jitted function for the whole file (the options static), so that cases with the same
+    shapes and options share one compilation."""
+    return _fields(_fit_eta(theta, R, sigma=sigma, init=init, **dict(kw)))
 
 
 def _checked_fit_dispersion(wavelength_um, theta, R, **kw):
     """`fit_dispersion` eagerly and under `jax.jit`: the same index curve. (Compared through the
     fitted index at the data's wavelengths: Sellmeier coefficients lie along flat valleys, where
     solves that stop within tolerance can end far apart with the same index.)"""
-    def summary(fit, lam):
-        n, se = fit.index(lam)
-        return {"eta": n, "stderr": se, "converged": fit.converged, "chi2_reduced": fit.chi2_reduced,
-                "residual_rms": fit.residual_rms}
-
     eager = _fit_dispersion(wavelength_um, theta, R, **kw)
-    jitted = jax.jit(lambda l, th, r: summary(_fit_dispersion(l, th, r, **kw), l))(wavelength_um, theta, R)
-    _assert_same(jitted, summary(eager, wavelength_um), "jit")
+    sigma = kw.pop("sigma", None)
+    init = kw.pop("init", None)
+    jitted = _jit_fit_dispersion(wavelength_um, theta, R, sigma, init, tuple(sorted(kw.items())))
+    _assert_same(jitted, _dispersion_summary(eager, wavelength_um), "jit")
     return eager
+
+
+def _dispersion_summary(fit, lam):
+    n, se = fit.index(lam)
+    return {"eta": n, "stderr": se, "converged": fit.converged, "chi2_reduced": fit.chi2_reduced,
+            "residual_rms": fit.residual_rms}
+
+
+@functools.partial(jax.jit, static_argnames="kw")
+def _jit_fit_dispersion(lam, theta, R, sigma, init, kw):
+    return _dispersion_summary(_fit_dispersion(lam, theta, R, sigma=sigma, init=init, **dict(kw)), lam)
 
 
 _fit_eta, _fit_dispersion = jo.fit_eta, jo.fit_dispersion
