@@ -17,6 +17,7 @@ from ._fit_model import POLARIZATIONS, _model
 from ._fit_solver import _tol
 from ._fresnel import materialize
 from ._materials import cauchy, sellmeier
+from ._result import result, static
 
 if TYPE_CHECKING:
     from jaxtyping import ArrayLike, Float
@@ -33,7 +34,8 @@ def _index(model, p, lam, terms):
     return sellmeier(lam, p[:terms], p[terms:])
 
 
-class DispersionFit(eqx.Module):
+@result
+class DispersionFit:
     """Result of `fit_dispersion`.
 
     **Fields:** `model` ("cauchy" or "sellmeier"), `terms`; `coefficients` (`(A, B, C, ...)` for
@@ -44,8 +46,8 @@ class DispersionFit(eqx.Module):
     coefficients).
     """
 
-    model: str = eqx.field(static=True)
-    terms: int = eqx.field(static=True)
+    model: str = static()
+    terms: int = static()
     coefficients: jax.Array
     covariance: jax.Array
     stderr: jax.Array

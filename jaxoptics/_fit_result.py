@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._result import result
 
-class FitResult(eqx.Module):
+
+@result
+class FitResult:
     """Result of `fit_eta`, a pytree usable under `jit` and `vmap`. Batch shape `(...)` is that of
     the curves.
 

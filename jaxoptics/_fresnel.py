@@ -69,12 +69,14 @@ import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
 from . import _validate as V
+from ._result import Unpacks, result
 
 if TYPE_CHECKING:
     from jaxtyping import Array, ArrayLike, Float, Inexact
 
 
-class FresnelAmplitudes(NamedTuple):
+@result
+class FresnelAmplitudes(Unpacks):
     """Complex amplitude coefficients of one interface (see the module conventions).
 
     **Fields:** ``r_s``, ``r_p``, ``t_s``, ``t_p``: complex arrays (``complex64`` for ``float32``

@@ -9,6 +9,7 @@ options select cheaper formulas where the scene allows (Schlick, no TIR, no inpu
 
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING, NamedTuple
 
 import jax
@@ -36,6 +37,7 @@ from ._refract import (
     _valid_vectors,
     _vectors,
 )
+from ._result import Unpacks, result
 from ._stack import stack
 
 if TYPE_CHECKING:
@@ -84,7 +86,8 @@ class InterfaceSpec(NamedTuple):
         return self
 
 
-class Interaction(NamedTuple):
+@result
+class Interaction(Unpacks):
     """Outputs of `interface`; fields not asked for in the spec are `None`.
 
     **Fields:** `r`, `t`: unit reflected and transmitted directions `(..., 3)` (`t` is the
@@ -251,7 +254,8 @@ class SceneSpec(NamedTuple):
     wavelengths: tuple = ()
 
 
-class Hit(NamedTuple):
+@result
+class Hit(Unpacks):
     """Per-hit result of `scene_interface`: reflected and transmitted directions, the energy
     fractions R (reflected) and T (transmitted; 0 for mirrors and conductors) and the TIR mask.
     With `SceneSpec.wavelengths`, `R` and `T` have a trailing spectral axis; under a coating
@@ -344,7 +348,7 @@ def scene_interface(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batc
             results.append(Hit(r, r, R, jnp.zeros_like(R), jnp.zeros(r.shape[:-1], bool)))
     if wls:  # every kind spectral: uncoated ones repeat their (non-dispersive) value
         rep = lambda x: jnp.broadcast_to(x[..., None], x.shape + (len(wls),))
-        results = [h if k in COATED_KINDS else h._replace(R=rep(h.R), T=rep(h.T)) for k, h in zip(kinds, results)]
+        results = [h if k in COATED_KINDS else dataclasses.replace(h, R=rep(h.R), T=rep(h.T)) for k, h in zip(kinds, results)]
     if len(results) == 1:
         out = results[0]
         inside = kind_arr == 0

@@ -23,13 +23,14 @@ NaN in every output (and `tir = False`); nothing raises inside `jit`.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 
 from . import _validate as V
 from ._fresnel import _kt_squared, _positive_finite, materialize, sqrt_where
+from ._result import Unpacks, result
 
 if TYPE_CHECKING:
     from jaxtyping import Array, ArrayLike, Float
@@ -37,7 +38,8 @@ if TYPE_CHECKING:
 METHODS = ("degreve", "heckbert", "bec", "oliveira")
 
 
-class Refraction(NamedTuple):
+@result
+class Refraction(Unpacks):
     """Result of `refract`; unpacks as `t, tir = refract(...)`.
 
     **Fields:**

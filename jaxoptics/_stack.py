@@ -93,12 +93,14 @@ import numpy as np
 
 from . import _validate as V
 from ._fresnel import _abs2, _kt_squared, decaying_sqrt, materialize, sqrt_where
+from ._result import Unpacks, result
 
 if TYPE_CHECKING:
     from jaxtyping import ArrayLike, Float, Inexact
 
 
-class StackResult(NamedTuple):
+@result
+class StackResult(Unpacks):
     """Result of `stack` (arrays of the batch shape ``(...)`` unless stated).
 
     **Fields:**
@@ -142,7 +144,8 @@ class StackResult(NamedTuple):
         return 0.5 * (self.A_s + self.A_p)
 
 
-class Ellipsometry(NamedTuple):
+@result
+class Ellipsometry(Unpacks):
     """Ellipsometric angles in radians, arrays of the batch shape: `psi` in `[0, pi/2]`, `delta`
     in `(-pi, pi]` (tmm's `ellips` convention; instruments report `Psi = psi`,
     `Delta = pi - delta`: see `ellipsometry`). NaN for out-of-domain elements."""

@@ -35,13 +35,13 @@ import dataclasses
 import functools
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
 from ._fit_solver import _tol
+from ._result import result, static
 from ._sample import Sample
 from ._spectra import Spectra
 
@@ -59,7 +59,8 @@ DEFAULT_SIGMA = {"psi_deg": 0.05, "delta_deg": 0.1, "N": 0.002, "C": 0.002, "S":
                  "R": 0.002, "R_s": 0.002, "R_p": 0.002, "T": 0.002, "T_s": 0.002, "T_p": 0.002}
 
 
-class StackFit(eqx.Module):
+@result
+class StackFit:
     """Result of `fit_stack`: a pytree over the map's sites (leading axes `(...)`, the spectra's
     batch shape; `()` for one spectrum).
 
@@ -80,7 +81,7 @@ class StackFit(eqx.Module):
     `fit.table()` a text table (one site: the first, or `site=i`).
     """
 
-    names: tuple = eqx.field(static=True)
+    names: tuple = static()
     values: jax.Array
     stderr: jax.Array
     covariance: jax.Array
@@ -89,7 +90,7 @@ class StackFit(eqx.Module):
     converged: jax.Array
     at_bound: jax.Array
     num_steps: jax.Array
-    sigma_given: bool = eqx.field(static=True)
+    sigma_given: bool = static()
 
     def _index(self, name):
         try:

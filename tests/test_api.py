@@ -140,6 +140,36 @@ def test_results_are_named_and_unpack():
     np.testing.assert_allclose(float(a.R_p), float(R_p), rtol=1e-14)
 
 
+RESULT_TYPES = ["Refraction", "FresnelAmplitudes", "Interaction", "Hit", "StackResult", "Ellipsometry",
+                "FitResult", "DispersionFit", "StackFit"]
+
+
+def test_one_kind_of_result_container():
+    """Every result type of the API is the same kind of container: a frozen dataclass registered
+    as a JAX pytree, with static fields out of its leaves; `dataclasses.replace` works on it and
+    `jit` returns it whole."""
+    import dataclasses
+
+    for name in RESULT_TYPES:
+        cls = getattr(jo, name)
+        assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen, name
+        assert not issubclass(cls, tuple), f"{name} is a tuple"
+        assert name in jo.__all__, name
+    res = jax.jit(lambda c: jo.stack(jnp.array([1.0, 1.46, 3.9]), jnp.array([100.0]), 600.0, c))(0.8)
+    assert isinstance(res, jo.StackResult) and res.r_s.dtype == jnp.complex128
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        res.R_s = 0.0
+    swapped = dataclasses.replace(res, R_s=res.R_p)
+    np.testing.assert_array_equal(swapped.R_s, res.R_p)
+    # static fields are structure, not leaves: a fit returns from jit with its names
+    leaves, tree = jax.tree.flatten(jo.DispersionFit("cauchy", 2, *[jnp.zeros(2)] * 8))
+    assert len(leaves) == 8 and jax.tree.unflatten(tree, leaves).model == "cauchy"
+    # kernels' results unpack in field order, like `t, tir = refract(...)`
+    psi, delta = jo.ellipsometry(jnp.array([1.0, 1.46, 3.9]), jnp.array([100.0]), 600.0, 0.8)
+    e = jo.ellipsometry(jnp.array([1.0, 1.46, 3.9]), jnp.array([100.0]), 600.0, 0.8)
+    assert (psi, delta) == (e.psi, e.delta)
+
+
 def test_float32_stays_float32_with_python_scalars():
     c = jnp.linspace(0, 1, 5, dtype=jnp.float32)
     assert jo.fresnel(c, 1.0, 1.5).dtype == jnp.float32
