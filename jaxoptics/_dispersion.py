@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import jax
@@ -244,12 +245,12 @@ class DrudeLorentz(Dispersion):
         return _from_eps(self.eps(wavelength_um))
 
 
-def Drude(wp, gamma, *, eps_inf=1.0) -> DrudeLorentz:
+def Drude(wp: float | Free, gamma: float | Free, *, eps_inf: float | Free = 1.0) -> DrudeLorentz:
     """A Drude metal: `eps = eps_inf - wp^2 / (E^2 + i gamma E)` (eV)."""
     return DrudeLorentz(eps_inf=eps_inf, drude=((wp, gamma),))
 
 
-def Lorentz(oscillators, *, eps_inf=1.0) -> DrudeLorentz:
+def Lorentz(oscillators: Sequence[Sequence[float | Free]], *, eps_inf: float | Free = 1.0) -> DrudeLorentz:
     """A sum of Lorentz oscillators `((f, E0, gamma), ...)` (eV) over `eps_inf`."""
     return DrudeLorentz(eps_inf=eps_inf, lorentz=tuple(tuple(t) for t in oscillators))
 

@@ -15,7 +15,7 @@ logical batch, or builds a global array with `jax.make_array_from_process_local_
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import jax
 import jax.numpy as jnp
@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from ._fit_result import FitResult
 
 AXIS = "batch"
+T = TypeVar("T")
 
 
 def batch_mesh(*, devices: Sequence[jax.Device] | None = None) -> Mesh:
@@ -72,8 +73,8 @@ def _trim(out, n, total, keep_padding):
     return jax.tree_util.tree_map(lambda y: y[:n] if jnp.ndim(y) and y.shape[0] == total else y, out)
 
 
-def sharded_map(fn: Callable, *arrays: ArrayLike, mesh: Mesh | None = None, broadcast: Sequence[ArrayLike] = (),
-                keep_padding: bool = False):
+def sharded_map(fn: Callable[..., T], *arrays: ArrayLike, mesh: Mesh | None = None, broadcast: Sequence[ArrayLike] = (),
+                keep_padding: bool = False) -> T:
     """Apply an elementwise-over-axis-0 function to arrays sharded along their first axis.
 
     **Arguments:** `fn(*arrays, *broadcast)`; `arrays` share their first (batch) axis, of any

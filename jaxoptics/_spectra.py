@@ -21,11 +21,14 @@ import csv
 import math
 import os
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from ._data import _fail
+
+if TYPE_CHECKING:
+    from jaxtyping import ArrayLike, Float
 
 KINDS = ("psi_deg", "delta_deg", "N", "C", "S", "R", "R_s", "R_p", "T", "T_s", "T_p")
 _MUELLER = tuple(f"m{i}{j}" for i in range(1, 5) for j in range(1, 5))
@@ -61,7 +64,7 @@ class Spectra(NamedTuple):
         return self.values.shape[:-2]
 
 
-def make_spectra(wavelength_nm, angle_deg, values: dict, *, sigma: dict | None = None) -> Spectra:
+def make_spectra(wavelength_nm: Float[ArrayLike, " P"], angle_deg: Float[ArrayLike, "#P"], values: dict, *, sigma: dict | None = None) -> Spectra:
     """Build `Spectra` from arrays: `values` maps kind names (see `KINDS`) to arrays `(..., P)`,
     `sigma` (optional) maps the same names to standard deviations of the same shapes."""
     w = np.asarray(wavelength_nm, np.float64).reshape(-1)

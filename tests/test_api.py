@@ -33,6 +33,20 @@ def test_optional_arguments_are_keyword_only():
                 assert p.kind == inspect.Parameter.KEYWORD_ONLY, f"{name}({p.name}=...) can be passed positionally"
 
 
+def test_public_functions_are_annotated():
+    """Every parameter of a public function has a type (arrays with jaxtyping shapes), as has its
+    return value."""
+    for name in jo.__all__:
+        obj = getattr(jo, name)
+        if not inspect.isfunction(obj):
+            continue
+        sig = inspect.signature(obj)
+        for p in sig.parameters.values():
+            if p.kind is not p.VAR_KEYWORD:
+                assert p.annotation is not p.empty, f"{name}({p.name}) has no annotation"
+        assert sig.return_annotation is not sig.empty, f"{name} has no return annotation"
+
+
 def test_kernel_docstrings_state_conventions_and_edge_cases():
     for name in PUBLIC_KERNELS:
         doc = getattr(jo, name).__doc__
