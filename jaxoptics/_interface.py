@@ -26,6 +26,7 @@ from ._fresnel import (
     _terms,
     _valid_index,
     materialize,
+    unpolarized,
 )
 from ._refract import (
     METHODS,
@@ -195,7 +196,7 @@ def interface(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batch 3"],
                 (R_s, R_p, _, _), (_, _, T_s, T_p) = powers_in_own_loop(4), powers_in_own_loop(0)
             else:
                 R_s, R_p, T_s, T_p = _powers(no_tir(tm), e1, e2)
-            out.update(R=0.5 * (R_s + R_p), T=0.5 * (T_s + T_p), R_s=R_s, R_p=R_p)
+            out.update(R=unpolarized(R_s, R_p), T=unpolarized(T_s, T_p), R_s=R_s, R_p=R_p)
         else:
             a = (e1 - e2) / (e1 + e2)
             r0 = a * a

@@ -70,6 +70,13 @@ def test_single_output_kernels_compile_to_one_loop():
         assert _fusions(jax.jit(f).lower(*args).compile()) == 1, name
     # R and T: one loop each (plus the one that writes k_t^2 for both)
     assert _fusions(jax.jit(lambda c: jo.fresnel_rt(c, 1.5, 1.0)).lower(c).compile()) <= 3
+    # reduced by the caller: the kernel stays one loop feeding the reduction (`unpolarized`); a
+    # trailing add and multiply would be taken into the reduction's fusion and cut the kernel into
+    # four loops (at sizes where XLA hands reductions to its library fusion: 10^6 here, compiled only)
+    big = jnp.linspace(0, 1, 1_000_000, dtype=jnp.float32)
+    for name, f in (("sum of fresnel", lambda c: jnp.sum(jo.fresnel(c, 1.5, 1.0))),
+                    ("sum of fresnel_rt's R", lambda c: jnp.sum(jo.fresnel_rt(c, 1.5, 1.0)[0]))):
+        assert _fusions(jax.jit(f).lower(big).compile()) <= 2, name
 
 
 _FAULTS = """

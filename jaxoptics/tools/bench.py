@@ -598,6 +598,12 @@ def bench_limits(*, quick=False, progress=None, n=None):
         if progress:
             progress.update(1)
     numpy_row("")
+    # the kernels as part of a caller's program: reduced (a loss, a radiance sum), where XLA fuses
+    # the kernel's loop into the reduction
+    consumers = (("fresnel, exact (jaxoptics), consumed by jnp.sum", lambda c: jnp.sum(jo.fresnel(c, e1, e2))),
+                 ("naive JAX textbook fresnel, consumed by jnp.sum", lambda c: jnp.sum(_naive_jax_fresnel(c, e1, e2))))
+    for name, f in consumers:
+        run_rows(name, f, False, c)
     # the fused interface kernel against its most expensive part (vector outputs: 3x the bytes)
     t_ = rng.uniform(0, np.pi / 2, N)
     iv = jnp.asarray(np.stack([np.sin(t_), np.zeros_like(t_), -np.cos(t_)], -1).astype(np.float32))
@@ -635,6 +641,8 @@ def bench_limits(*, quick=False, progress=None, n=None):
                 run_rows(name, f, False, c, ", freed memory kept")
             run_rows("jo.fresnel_rt (R and T as two loops)", lambda c: jo.fresnel_rt(c, e1, e2),
                      False, c, ", freed memory kept")
+            for name, f in consumers:
+                run_rows(name, f, False, c, ", freed memory kept")
             numpy_row(", freed memory kept")
             for name, f in vector_kernels:
                 run_rows(name, f, False, iv, ", freed memory kept")
