@@ -179,13 +179,22 @@ class _ResolvedSample:
         Ns = [jnp.broadcast_to(N.astype(cdt), jnp.shape(lam_um)) for N in Ns]
         return jnp.stack(Ns, axis=-1)
 
-    def stack(self, wavelength_nm, angle_rad):
+    def stack_inputs(self, wavelength_nm):
+        """`(n, d)` for `stack`: `(..., L)` indices (the ambient's real part) and `(L-2,)` thicknesses."""
         wl = jnp.asarray(wavelength_nm)
         n = self.indices(wl)
         n = n.at[..., 0].set(jnp.real(n[..., 0]).astype(n.dtype))
         d = jnp.stack([jnp.asarray(layer.thickness_nm, wl.dtype) for layer in self.layers]) if self.layers else jnp.zeros((0,), wl.dtype)
-        inc = tuple(i for i, layer in enumerate(self.layers) if layer.incoherent)
-        return stack(n, d, wl, jnp.cos(jnp.asarray(angle_rad, wl.dtype)), incoherent=inc)
+        return n, d
+
+    @property
+    def incoherent(self) -> tuple:
+        return tuple(i for i, layer in enumerate(self.layers) if layer.incoherent)
+
+    def stack(self, wavelength_nm, angle_rad):
+        wl = jnp.asarray(wavelength_nm)
+        n, d = self.stack_inputs(wl)
+        return stack(n, d, wl, jnp.cos(jnp.asarray(angle_rad, wl.dtype)), incoherent=self.incoherent)
 
     def quantities(self, kinds, wavelength_nm, angle_rad, *, flat=False):
         """The measured quantities `kinds` (names from `jaxoptics.KINDS`) at each point, stacked

@@ -13,10 +13,14 @@ The method, per spectrum:
    wavelengths that still samples the fringes of the thickest film at least four times per
    period. Several free thicknesses are searched on their product grid, which is coarsened to at
    most `max_grid` points.
-2. **Levenberg-Marquardt** (optimistix) from the `starts` best grid points, least squares
-   weighted by `sigma`; the lowest chi^2 wins. Bounds are kept by the usual change of variables
-   (`x = lo + (hi - lo)(1 + sin u)/2` for two bounds, `lo - 1 + sqrt(u^2 + 1)` for one, as MINUIT
-   and lmfit do).
+2. **Gauss-Newton, then Levenberg-Marquardt** (optimistix) from the `starts` best grid points,
+   least squares weighted by `sigma`; the lowest chi^2 wins. Gauss-Newton (at most 20 steps) fits
+   nearly every spectrum; Levenberg-Marquardt restarts from the same points for those it did not.
+   Bounds are kept by the usual change of variables (`x = lo + (hi - lo)(1 + sin u)/2` for two
+   bounds, `lo - 1 + sqrt(u^2 + 1)` for one, as MINUIT and lmfit do). The spectra of a map are
+   solved by a pool of lanes that take the next spectrum as soon as theirs has converged
+   (`jaxoptics._pool`), and the Jacobian is formed with as few passes through the stack as the
+   model allows (`_jacobian_plan`).
 3. **Uncertainties** from the Jacobian of the weighted residuals in the physical parameters at
    the solution: covariance `(J^T J)^-1`, inverted through the eigendecomposition of the
    correlation-scaled matrix, with no truncation: a direction the data do not determine gets an
@@ -34,26 +38,31 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ._dispersion import Free, parameter_leaves
 from ._fit_solver import _tol
+from ._pool import pooled_least_squares
 from ._result import result, static
-from ._sample import Sample
+from ._sample import Sample, model_quantities
 from ._spectra import Spectra
+from ._stack import stack
 
 # Gauss-Newton converges in 8-17 steps on the benchmark's map (film thickness and Cauchy A, B, C
-# free) and a spectrum it has not fitted after 20 is handed to Levenberg-Marquardt, which takes
-# 50-80 steps on those. LM runs on blocks of 8 pending spectra: a vmapped solve runs until its
-# slowest member stops, so small blocks keep a few slow spectra from holding up many (measured
-# on 256 spectra: 6.3 ms per spectrum with blocks of 8, 10.5 with blocks of 64).
+# free); a spectrum it has not fitted after 20 (about 1 in 100 there) is handed to
+# Levenberg-Marquardt, which takes 50-80 steps on those. Both run as pools of lanes refilled as
+# problems stop (`_pool`): 64 lanes keep the vectorized stack kernel busy, and the few
+# Levenberg-Marquardt problems run 8 at a time so that idle lanes cost little.
 _GN_STEPS = 20
-_RETRY_BLOCK = 8
-# Spectra per block of the Gauss-Newton stage (a lax.map over blocks bounds the memory of a map
-# of any size; 16-64 measured alike).
+_GN_LANES = 64
+_LM_LANES = 8
+# Spectra per block of the other batched passes (grid costs, chi^2, standard errors): a lax.map
+# over blocks bounds the memory of a map of any size.
 _FIRST_BLOCK = 64
 DEFAULT_SIGMA = {"psi_deg": 0.05, "delta_deg": 0.1, "N": 0.002, "C": 0.002, "S": 0.002,
                  "R": 0.002, "R_s": 0.002, "R_p": 0.002, "T": 0.002, "T_s": 0.002, "T_p": 0.002}
@@ -253,13 +262,26 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
     bounds = [_Bound(f.lower, f.upper) for f in free]
     x0 = np.asarray([f.value for f in free], np.float64)
 
-    def residuals_x(x, wl, ang, V, S):
-        """Weighted residuals, quantity after quantity (`V`, `S` flattened the same way)."""
-        model = sample.with_values([x[i] for i in range(p)]).quantities(kinds, wl, ang, flat=True)
+    def model_x(x, wl, ang):
+        """The model's quantities, quantity after quantity."""
+        return sample.with_values([x[i] for i in range(p)]).quantities(kinds, wl, ang, flat=True)
+
+    def weigh(model, V, S):
+        """Weighted residuals of `model` against the data (`V`, `S` flattened the same way)."""
         diff = model - V
         if has_delta:
-            diff = jnp.where(jnp.repeat(is_delta, wl.shape[0]), _wrap_deg(diff), diff)
+            diff = jnp.where(jnp.broadcast_to(jnp.repeat(is_delta, diff.shape[-1] // Q), diff.shape), _wrap_deg(diff), diff)
         return diff / S
+
+    def residuals_x(x, wl, ang, V, S):
+        """Weighted residuals, quantity after quantity."""
+        return weigh(model_x(x, wl, ang), V, S)
+
+    model_and_jac = _model_and_jacobian(sample, kinds, wl, ang)
+
+    def residuals_and_jac(x, V, S):
+        m, J = model_and_jac(x)
+        return weigh(m, V, S), J / S[:, None]  # the wrap of delta has derivative 1
 
     def to_x(u):
         return jnp.stack([b.x(u[i]) for i, b in enumerate(bounds)])
@@ -315,43 +337,22 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         # the stack kernel would store and re-read every intermediate array; J @ du is cheap.
         u, Vb, Sb = primals
         du, dV, dS = tangents
-        r, J = _value_and_jacfwd(lambda u: residuals_x(to_x(u), wl, ang, Vb, Sb), u)
-        return r, J @ du - dV / Sb - r * dS / Sb  # r = (model - V) / S is linear in V and 1/S
+        x, dxdu = jax.jvp(to_x, (u,), (jnp.ones_like(u),))  # x_i depends on u_i alone
+        r, J = residuals_and_jac(x, Vb, Sb)
+        return r, J @ (dxdu * du) - dV / Sb - r * dS / Sb  # r = (model - V) / S is linear in V and 1/S
 
-    def solve(solver, steps_max, u0, Vb, Sb):
-        fn = lambda u, args: residuals_u(u, Vb, Sb)
-        sol = optx.least_squares(fn, solver, u0, max_steps=steps_max, throw=False)
-        x = to_x(sol.value)
-        r = residuals_x(x, wl, ang, Vb, Sb)
-        c2 = jnp.sum(r * r)
-        c2 = jnp.where(jnp.isfinite(c2), c2, jnp.inf)
-        ok = (sol.result == optx.RESULTS.successful) & jnp.isfinite(c2)
-        return x, c2, ok, sol.stats["num_steps"]
-
-    def first(Vb, Sb):
-        """Grid start, then Gauss-Newton from the `starts` best grid points."""
+    def starts_of(Vb, Sb, Mg):
+        """The `starts` best grid points of one spectrum (or the `Free` values), in `u`."""
         if grid is None:
-            u0s = to_u(jnp.asarray(x0, dtype))[None]
-        else:
-            g = jnp.asarray(grid, dtype)
-            Vs = Vb.reshape(Q, P)[:, sub].reshape(-1)
-            Ss = Sb.reshape(Q, P)[:, sub].reshape(-1)
-            cost = jax.vmap(lambda x: jnp.sum(residuals_x(x, wl[sub], ang[sub], Vs, Ss) ** 2))(g)
-            cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
-            u0s = jax.vmap(to_u)(g[jnp.argsort(cost)[:starts]])
-        xs, c2, ok, steps = jax.vmap(lambda u0: solve(gn, _GN_STEPS, u0, Vb, Sb))(u0s)
-        k = jnp.argmin(jnp.where(ok, c2, jnp.inf))
-        return xs[k], c2[k], ok[k], steps[k], u0s
-
-    def retry(x, c2, ok, steps, u0s, Vb, Sb):
-        """Levenberg-Marquardt from the same starts, for a spectrum Gauss-Newton did not fit."""
-        xs2, c22, ok2, st2 = jax.vmap(lambda u0: solve(lm, max_steps, u0, Vb, Sb))(u0s)
-        k = jnp.argmin(jnp.where(ok2, c22, jnp.inf))
-        better = ok2[k] & (~ok | (c22[k] < c2))
-        return (jnp.where(better, xs2[k], x), jnp.where(better, c22[k], c2), ok | ok2[k], steps + st2[k])
+            return to_u(jnp.asarray(x0, dtype))[None]
+        Vs = Vb.reshape(Q, P)[:, sub].reshape(-1)
+        Ss = Sb.reshape(Q, P)[:, sub].reshape(-1)
+        cost = jnp.sum(weigh(Mg, Vs[None], Ss[None]) ** 2, axis=-1)
+        cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+        return jax.vmap(to_u)(jnp.asarray(grid, dtype)[jnp.argsort(cost)[:starts]])
 
     def errors(x, c2, ok, Vb, Sb):
-        J = _value_and_jacfwd(lambda x: residuals_x(x, wl, ang, Vb, Sb), x)[1]
+        J = residuals_and_jac(x, Vb, Sb)[1]
         m = J.shape[0]
         chi2r = c2 / (m - p)
         A = J.T @ J
@@ -374,41 +375,156 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         conv = ok & jnp.all(jnp.isfinite(x)) & jnp.isfinite(chi2r)
         return sd, cov, corr, chi2r, conv, at_b
 
-    K = min(B, _RETRY_BLOCK)
-
     def run(V, S):
         V, S = V.reshape(B, -1), S.reshape(B, -1)
-        x, c2, ok, steps, u0s = _blocked(jax.vmap(first), (V, S), _FIRST_BLOCK, _report if progress else None)
+        # the model on the grid does not depend on the data: evaluated once for the whole map, and
+        # each spectrum only compares its data with it
+        Mg = None if grid is None else jax.vmap(lambda x: model_x(x, wl[sub], ang[sub]))(jnp.asarray(grid, dtype))
+        U0 = _blocked(jax.vmap(lambda Vb, Sb: starts_of(Vb, Sb, Mg)), (V, S), _FIRST_BLOCK).reshape(B * starts, p)
+        M = B * starts
+        spec = jnp.arange(M) // starts  # the spectrum of each (spectrum, start) problem
+        fn = lambda u, i: residuals_u(u, V[i], S[i])
+        chi2 = lambda u, i: jnp.sum(residuals_x(to_x(u), wl, ang, V[i], S[i]) ** 2)
 
-        # Levenberg-Marquardt for the spectra Gauss-Newton left unconverged, K at a time (the
-        # pending ones gathered to the front), so that its cost follows the number of failures
-        def body(carry):
-            x, c2, ok, steps, pending = carry
-            idx = jnp.argsort(~pending, stable=True)[:K]
-            sel = pending[idx]
-            nx, nc, nok, nst = jax.vmap(retry)(x[idx], c2[idx], ok[idx], steps[idx], u0s[idx], V[idx], S[idx])
-            upd = lambda a, b: a.at[idx].set(jnp.where(sel.reshape((-1,) + (1,) * (b.ndim - 1)), b, a[idx]))
-            return upd(x, nx), upd(c2, nc), upd(ok, nok), upd(steps, nst), pending.at[idx].set(False)
+        def best(u, c2, ok, steps):
+            """The lowest chi^2 among each spectrum's starts."""
+            x = jax.vmap(to_x)(u).reshape(B, starts, p)
+            c2 = jnp.where(jnp.isfinite(c2), c2, jnp.inf).reshape(B, starts)
+            ok = ok.reshape(B, starts) & jnp.isfinite(c2)
+            k = jnp.argmin(jnp.where(ok, c2, jnp.inf), axis=1)
+            pick = lambda a: jnp.take_along_axis(a, k.reshape((B, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
+            return pick(x), pick(c2), pick(ok), pick(steps.reshape(B, starts))
 
-        x, c2, ok, steps, _ = jax.lax.while_loop(lambda c: jnp.any(c[-1]), body, (x, c2, ok, steps, ~ok))
+        # Gauss-Newton from every start
+        u1, ok1, st1, _ = pooled_least_squares(fn, gn, U0, spec, jnp.arange(M), M, lanes=_GN_LANES,
+                                               max_steps=_GN_STEPS, on_progress=(lambda done, _: _report(done // starts, B)) if progress else None)
+        x, c2, ok, steps = best(u1, _blocked(jax.vmap(chi2), (u1, spec), _FIRST_BLOCK), ok1, st1)
+
+        # Levenberg-Marquardt from the same starts, for the spectra Gauss-Newton did not fit (the
+        # pending problems first, in `order`, so that its cost follows the number of failures)
+        pend = ~ok[spec]
+        order = jnp.argsort(~pend, stable=True)
+        count = jnp.sum(pend)
+        u2, ok2, st2, touched = pooled_least_squares(fn, lm, U0, spec, order, count, lanes=_LM_LANES,
+                                                     max_steps=max_steps)
+        c22 = _pending_map(chi2, (u2, spec), order, count, _LM_LANES, jnp.full(M, jnp.inf, dtype))
+        x2, c22, ok2, st2 = best(u2, c22, ok2 & touched, st2)
+        better = ok2 & (~ok | (c22 < c2))
+        x = jnp.where(better[:, None], x2, x)
+        c2 = jnp.where(better, c22, c2)
+        steps = steps + st2
+        ok = ok | ok2
+
         sd, cov, corr, chi2r, conv, at_b = _blocked(jax.vmap(errors), (x, c2, ok, V, S), _FIRST_BLOCK)
         return x, sd, cov, corr, chi2r, conv, at_b, steps
 
     return jax.jit(run)
 
 
-def _value_and_jacfwd(f, x):
-    """`(f(x), J)` with `J[:, i] = df/dx_i`: one pass with `len(x)` tangents (the primal is not
-    batched over them, so it is computed once)."""
-    basis = jnp.eye(x.shape[0], dtype=x.dtype)
-    r, J = jax.vmap(lambda t: jax.jvp(f, (x,), (t,)), out_axes=(None, 1))(basis)
-    return r, J
+def _pending_map(f, args, order, count, size, init):
+    """`out[order[i]] = f(*args[order[i]])` for `i < count` (traced), `size` at a time, the rest of
+    `init` unchanged: the work follows `count`, not the length of `args`."""
+    M = order.shape[0]
+    size = min(size, M)
+
+    def body(c):
+        i, out = c
+        idx = jax.lax.dynamic_slice(jnp.concatenate([order, order[:size]]), (i,), (size,))
+        val = jax.vmap(f)(*(a[idx] for a in args))
+        dst = jnp.where(i + jnp.arange(size) < count, idx, M)
+        return i + size, out.at[dst].set(val, mode="drop")
+
+    return jax.lax.while_loop(lambda c: c[0] < count, body, (jnp.asarray(0), init))[1]
+
+
+def _model_and_jacobian(sample, kinds, wl, ang):
+    """`x -> (model, J)`: the quantities `kinds` at the points `(wl, ang)` (nm, radians), flat
+    `(Q P,)`, and their Jacobian `(Q P, p)` in the free parameters `x`, by the chain rule through the
+    stack's inputs (`_jacobian_plan`)."""
+    plan = _jacobian_plan(sample)
+    p, Q = len(plan.columns), len(kinds)
+    inc = sample.incoherent
+    cos_ang = jnp.cos(ang)
+    inputs = lambda x: sample.with_values([x[i] for i in range(p)]).stack_inputs(wl)
+    quantities = lambda n, d: model_quantities(stack(n, d, wl, cos_ang, incoherent=inc), kinds, True)
+
+    def model_and_jac(x):
+        basis = jnp.eye(p, dtype=x.dtype)
+        (n, d), (dn, dd) = jax.vmap(lambda t: jax.jvp(inputs, (x,), (t,)), out_axes=(None, -1))(basis)
+        tn, td = [], []
+        for kind, j in plan.directions:
+            if kind == "param":
+                tn.append(dn[..., j])
+                td.append(dd[..., j])
+            else:
+                tn.append(jnp.zeros_like(n).at[..., j].set(1 if kind == "re" else 1j))
+                td.append(jnp.zeros_like(d))
+        m, D = jax.vmap(lambda a, b: jax.jvp(quantities, (n, d), (a, b)), out_axes=(None, 1))(jnp.stack(tn), jnp.stack(td))
+        cols = []
+        for i in range(p):
+            src = plan.columns[i]
+            if len(src) == 1:  # the parameter's own direction
+                cols.append(D[:, src[0]])
+            else:  # d/dx_i = d/dRe(n_j) Re(dn_j/dx_i) + d/dIm(n_j) Im(dn_j/dx_i), point by point
+                k_re, k_im = src
+                g = jnp.tile(dn[:, plan.medium[i], i], Q)
+                col = D[:, k_re] * jnp.real(g)
+                cols.append(col if k_im is None else col + D[:, k_im] * jnp.imag(g))
+        return m, jnp.stack(cols, axis=1)
+
+    return model_and_jac
+
+
+class _Plan(NamedTuple):
+    directions: tuple  # tangents through the stack: ("param", i), ("re", j) or ("im", j)
+    columns: tuple  # per free parameter: (direction,) or (re direction, im direction or None)
+    medium: tuple  # per free parameter: the medium it belongs to (None for a thickness)
+
+
+def _jacobian_plan(sample):
+    """How `fit_stack` builds the Jacobian of the model in the free parameters `x`.
+
+    The model is `quantities(stack(n(x), d(x)))`: cheap per-point dispersion formulas `n(x)` of
+    the `L` media and the thicknesses `d(x)`, then the stack, which costs nearly all the time. Its
+    forward-mode derivative costs about one stack evaluation per tangent, so the tangents through
+    the stack are kept few: a medium with more than two free parameters gets two (its index's real
+    and imaginary part, at every point at once: each point depends on its own index only; the
+    incident medium, which is real, one), and the derivative in each of its parameters is their
+    point-by-point combination with the dispersion formula's derivatives. Every other parameter
+    (a thickness, or a medium with one or two) is its own tangent. On the benchmark's film (Cauchy
+    A, B, C and the thickness free) that is 3 tangents instead of 4."""
+    medium, counts = [], []
+    for j, (_, model) in enumerate(sample._slots()):
+        k = sum(isinstance(leaf, Free) for _, leaf in parameter_leaves(model))
+        medium += [j] * k
+        counts.append(k)
+    medium += [None] * sum(isinstance(layer.thickness_nm, Free) for layer in sample.layers)
+    directions, columns, split = [], [], {}
+    for i, j in enumerate(medium):
+        if j is not None and counts[j] > 2:
+            if j not in split:
+                split[j] = (len(directions), None if j == 0 else len(directions) + 1)
+                directions += [("re", j)] + ([] if j == 0 else [("im", j)])
+            columns.append(split[j])
+        else:
+            columns.append((len(directions),))
+            directions.append(("param", i))
+    return _Plan(tuple(directions), tuple(columns), tuple(medium))
+
+
+_last_report = [0.0]
 
 
 def _report(done, total):
+    """Progress on standard error, at most twice a second and once at the end."""
     import sys
+    import time
 
     done, total = int(done), int(total)
+    now = time.monotonic()
+    if done < total and now - _last_report[0] < 0.5:
+        return
+    _last_report[0] = now
     end = "\n" if done >= total else ""
     print(f"\rfit_stack: {done} of {total} spectra fitted (Gauss-Newton stage)", end=end, file=sys.stderr, flush=True)
 

@@ -281,3 +281,71 @@ def test_map_progress_and_noise_free_recovery(capfd):
     fit = jo.fit_stack(m, jo.make_spectra(wl, ang, {"psi_deg": q[:, 0], "delta_deg": q[:, 1]}), progress=True)
     assert np.max(np.abs(np.asarray(fit["ox.thickness_nm"]) - d)) < 1e-8
     assert "fit_stack: 300 of 300 spectra fitted" in capfd.readouterr().err
+
+
+@pytest.mark.parametrize("case", ["film", "mixed"])
+def test_jacobian_through_the_stack_inputs_equals_jacfwd(case):
+    """`fit_stack`'s Jacobian (tangents through the stack's inputs, `_jacobian_plan`) equals
+    `jax.jacfwd` of the model, for media with many free parameters (split into the real and
+    imaginary part of the index), media with one or two, thicknesses, an incoherent layer and
+    every kind of quantity."""
+    from jaxoptics._stack_fit import _jacobian_plan, _model_and_jacobian
+
+    wl = np.linspace(300.0, 1000.0, 40)
+    ang = np.radians(np.repeat([55.0, 70.0], 20))
+    if case == "film":
+        sample = jo.Sample([jo.Layer(jo.Cauchy(A=jo.Free(1.46), B=jo.Free(0.004), C=jo.Free(1e-4)), jo.Free(480.0))],
+                           jo.material("Si"))
+        kinds, x = ("psi_deg", "delta_deg"), [1.46, 0.004, 1e-4, 480.0]
+        assert len(_jacobian_plan(sample).directions) == 3  # Re n, Im n of the film; its thickness
+    else:
+        tl = jo.TaucLorentz(A=jo.Free(120.0), E0=jo.Free(3.8), C=jo.Free(1.2), Eg=jo.Free(2.1), eps_inf=1.1)
+        sample = jo.Sample([jo.Layer(1.5, 2e5, incoherent=True), jo.Layer(tl, jo.Free(60.0)),
+                            jo.Layer(jo.Cauchy(A=jo.Free(1.46)), 300.0)], jo.Constant(n=jo.Free(1.7), k=jo.Free(0.02)))
+        kinds = ("R_s", "R_p", "R", "T", "N", "C", "S", "psi_deg", "delta_deg")
+        x = [120.0, 3.8, 1.2, 2.1, 1.46, 1.7, 0.02, 60.0]
+    jax.config.update("jax_enable_x64", True)
+    x = jnp.asarray(x, jnp.float64)
+    wl_j, ang_j = jnp.asarray(wl), jnp.asarray(ang)
+    m, J = jax.jit(_model_and_jacobian(sample, kinds, wl_j, ang_j))(x)
+    model = lambda x: sample.with_values([x[i] for i in range(x.shape[0])]).quantities(kinds, wl_j, ang_j, flat=True)
+    J_ref = jax.jacfwd(model)(x)
+    np.testing.assert_allclose(m, model(x), rtol=1e-13, atol=1e-13)
+    assert np.all(np.isfinite(J))
+    scale = np.max(np.abs(J_ref), axis=0)
+    np.testing.assert_allclose(np.asarray(J) / scale[None], np.asarray(J_ref) / scale[None], rtol=0, atol=1e-11)
+
+
+def test_pooled_solves_equal_one_solve_per_problem():
+    """`pooled_least_squares` (lanes refilled as problems stop) gives each problem the solution,
+    step count and status of its own `optx.least_squares` call; problems outside `order[:count]`
+    are left at their starts."""
+    import optimistix as optx
+
+    from jaxoptics._pool import pooled_least_squares
+
+    jax.config.update("jax_enable_x64", True)
+    t = jnp.linspace(0, 4, 30)
+    rng = np.random.default_rng(3)
+    truth = jnp.asarray(np.stack([rng.uniform(0.5, 2, 23), rng.uniform(0.2, 3, 23)], -1))
+    data = truth[:, :1] * jnp.exp(-truth[:, 1:] * t[None]) + 0.01 * jnp.asarray(rng.normal(size=(23, 30)))
+    y0 = jnp.asarray(np.stack([rng.uniform(0.2, 4, 23), rng.uniform(0.05, 6, 23)], -1))
+    fn = lambda y, i: y[0] * jnp.exp(-y[1] * t) - data[i]
+    for solver in (optx.GaussNewton(rtol=1e-9, atol=1e-9), optx.LevenbergMarquardt(rtol=1e-9, atol=1e-9)):
+        ref = [optx.least_squares(fn, solver, y0[i], i, max_steps=12, throw=False) for i in range(23)]
+        order = jnp.asarray(rng.permutation(23))
+        y, ok, steps, touched = jax.jit(lambda order: pooled_least_squares(
+            fn, solver, y0, jnp.arange(23), order, 17, lanes=4, max_steps=12))(order)
+        done = np.zeros(23, bool)
+        done[np.asarray(order[:17])] = True
+        np.testing.assert_array_equal(touched, done)
+        for i in range(23):
+            if not done[i]:
+                np.testing.assert_array_equal(y[i], y0[i])
+                continue
+            r = ref[i]
+            assert int(steps[i]) == int(r.stats["num_steps"])
+            assert bool(ok[i]) == bool(r.result == optx.RESULTS.successful)
+            np.testing.assert_allclose(y[i], r.value, rtol=1e-12, atol=1e-12)
+        # the problems stop after different numbers of steps (the case the pool exists for)
+        assert len(set(np.asarray(steps)[done].tolist())) >= 3
