@@ -104,7 +104,7 @@ class FresnelAmplitudes(Unpacks):
     @property
     def R(self):
         """Unpolarized reflectance, ``(R_s + R_p) / 2``."""
-        return 0.5 * (self.R_s + self.R_p)
+        return unpolarized(self.R_s, self.R_p)
 
 
 def _abs2(z):

@@ -92,7 +92,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _validate as V
-from ._fresnel import _abs2, _kt_squared, decaying_sqrt, materialize, sqrt_where
+from ._fresnel import _abs2, _kt_squared, decaying_sqrt, materialize, sqrt_where, unpolarized
 from ._result import Unpacks, result
 
 if TYPE_CHECKING:
@@ -131,17 +131,17 @@ class StackResult(Unpacks):
     @property
     def R(self):
         """Unpolarized reflectance ``(R_s + R_p) / 2``."""
-        return 0.5 * (self.R_s + self.R_p)
+        return unpolarized(self.R_s, self.R_p)
 
     @property
     def T(self):
         """Unpolarized transmittance ``(T_s + T_p) / 2``."""
-        return 0.5 * (self.T_s + self.T_p)
+        return unpolarized(self.T_s, self.T_p)
 
     @property
     def A(self):
         """Unpolarized absorption per inner layer ``(A_s + A_p) / 2``, shape ``(..., L-2)``."""
-        return 0.5 * (self.A_s + self.A_p)
+        return unpolarized(self.A_s, self.A_p)
 
 
 @result

@@ -77,6 +77,8 @@ def test_single_output_kernels_compile_to_one_loop():
     for name, f in (("sum of fresnel", lambda c: jnp.sum(jo.fresnel(c, 1.5, 1.0))),
                     ("sum of fresnel_rt's R", lambda c: jnp.sum(jo.fresnel_rt(c, 1.5, 1.0)[0]))):
         assert _fusions(jax.jit(f).lower(big).compile()) <= 2, name
+    # the unpolarized R of the complex amplitudes: 5 loops (23 with a trailing add and multiply)
+    assert _fusions(jax.jit(lambda c: jnp.sum(jo.fresnel_amplitudes(c, 1.5, 1.0).R)).lower(big).compile()) <= 5
 
 
 _FAULTS = """
