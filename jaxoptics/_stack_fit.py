@@ -83,7 +83,8 @@ class StackFit:
       value is finite.
     - `at_bound`: `(..., p)` bool, a value within `1e-6` (relative to its range) of a bound:
       its standard error describes the curvature there, not a confidence interval.
-    - `num_steps`: `(...)`, Levenberg-Marquardt steps of the winning start.
+    - `num_steps`: `(...)`, solver steps of the winning start (Gauss-Newton's, plus
+      Levenberg-Marquardt's where the spectrum was refitted with it).
     - `sigma_given`: whether the data carried sigma (static).
 
     `fit["oxide.thickness_nm"]` is the value of one parameter; `fit.stderr_of(name)` its error;
