@@ -1,4 +1,7 @@
+import gc
+
 import jax
+import pytest
 
 # float64 available for the high-precision comparisons; float32 tests pass float32 arrays
 # explicitly (dtype follows the inputs, so x64 being on does not change them).
@@ -11,3 +14,15 @@ from hypothesis import settings  # noqa: E402 (after the config updates above)
 # Deterministic property tests: CI runs the same examples every time (no flaky reds).
 settings.register_profile("ci", derandomize=True, max_examples=200, deadline=None, print_blob=True)
 settings.load_profile("ci")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_compiled_programs():
+    """Drop every compiled program after each test module. XLA's CPU executables each hold many
+    memory mappings (its code is linked as many small objects; a stress-test module alone leaves
+    about 6,000 and peaks near 11,000), and a pytest worker that keeps every program of the
+    suite alive runs into the kernel's limit on mappings per process (`vm.max_map_count`, 65,530
+    by default), where the next compilation's `mmap` fails and XLA crashes."""
+    yield
+    jax.clear_caches()
+    gc.collect()
