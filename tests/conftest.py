@@ -19,10 +19,11 @@ settings.load_profile("ci")
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_programs():
     """Drop every compiled program after each test module. XLA's CPU executables each hold many
-    memory mappings (its code is linked as many small objects; a stress-test module alone leaves
-    about 6,000 and peaks near 11,000), and a pytest worker that keeps every program of the
-    suite alive runs into the kernel's limit on mappings per process (`vm.max_map_count`, 65,530
-    by default), where the next compilation's `mmap` fails and XLA crashes."""
+    memory mappings (their code is linked as many small objects: the thin-film part of the
+    stress test alone leaves about 6,800 and peaks near 10,900), and a pytest worker that keeps
+    every program of the suite alive runs into the kernel's limit on mappings per process
+    (`vm.max_map_count`, 65,530 by default), where the next compilation's `mmap` fails and XLA
+    crashes."""
     yield
     jax.clear_caches()
     gc.collect()
