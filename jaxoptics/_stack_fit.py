@@ -530,7 +530,7 @@ def _report(done, total):
     print(f"\rfit_stack: {done} of {total} spectra fitted (Gauss-Newton stage)", end=end, file=sys.stderr, flush=True)
 
 
-def _blocked(f, args, size, on_block=None):
+def _blocked(f, args, size):
     """`f` (batched over the leading axis) over blocks of `size` along that axis, one block after
     another (`lax.map`); the last block is padded by repeating the final element. Each block's
     intermediate arrays (a few spectra x all their points) then stay in the CPU's caches, where
@@ -541,12 +541,5 @@ def _blocked(f, args, size, on_block=None):
     nb = -(-B // size)
     pad = lambda a: jnp.concatenate([a, jnp.broadcast_to(a[-1:], (nb * size - B,) + a.shape[1:])]).reshape((nb, size) + a.shape[1:])
 
-    def body(xs):
-        i, xs = xs
-        out = f(*xs)
-        if on_block is not None:  # after the block's results exist (ordered by the data dependence)
-            jax.debug.callback(lambda i, _: on_block(min((i + 1) * size, B), B), i, jax.tree.leaves(out)[0])
-        return out
-
-    out = jax.lax.map(body, (jnp.arange(nb), tuple(pad(a) for a in args)))
+    out = jax.lax.map(lambda xs: f(*xs), tuple(pad(a) for a in args))
     return jax.tree.map(lambda y: y.reshape((nb * size,) + y.shape[2:])[:B], out)
