@@ -111,14 +111,30 @@ def _fit(args) -> int:
           f"errors {'from the sigma column' if data.sigma is not None else 'scaled by the residual scatter'}")
     head = f"{'wavelength_um':>13} {'pol':>11} {'points':>6} {'eta':>24} {'stderr':>22} {'converged':>9} {'rms resid':>10} {'chi2/dof':>9} {'steps':>5}"
     print(head)
-    fits = []
-    for c in curves:
+    from jaxoptics._fit import check_curves
+
+    for c in curves:  # each curve's data checked on its own, so that an error names its lines
         try:
-            r = jo.fit_eta(c.theta, c.R, eta1=args.eta1, polarization=c.polarization, sigma=c.sigma,
-                           absorbing=args.absorbing)
+            check_curves(c.theta, c.R, c.sigma, n_params=2 if args.absorbing else 1)
         except ValueError as e:
             print(f"error: {path}, curve at lines {c.lines[0]}-{c.lines[-1]}: {e}", file=sys.stderr)
             return 2
+    # Curves on the same angles (any polarization and wavelength) are fitted together: one
+    # compiled program and one call per group.
+    groups: dict = {}
+    for c in curves:
+        groups.setdefault((c.theta.tobytes(), c.sigma is None), []).append(c)
+    fitted = {}
+    for group in groups.values():
+        r = jo.fit_eta(group[0].theta, np.stack([c.R for c in group]), eta1=args.eta1,
+                       polarization=tuple(c.polarization for c in group),
+                       sigma=None if group[0].sigma is None else np.stack([c.sigma for c in group]),
+                       absorbing=args.absorbing)
+        for k, c in enumerate(group):
+            fitted[id(c)] = jax.tree_util.tree_map(lambda x, k=k: np.asarray(x)[k], r)
+    fits = []
+    for c in curves:
+        r = fitted[id(c)]
         fits.append((c, r))
         lam = "-" if c.wavelength_um is None else f"{c.wavelength_um:g}"
         eta = complex(r.eta) if args.absorbing else float(r.eta)

@@ -12,6 +12,7 @@ the standard errors), `_fit_followups` (refits, second branches, restarts in JAX
 
 from __future__ import annotations
 
+import functools
 import warnings
 from typing import TYPE_CHECKING
 
@@ -22,11 +23,13 @@ import optimistix as optx
 
 from . import _validate as V
 from ._fit_followups import _batch_shards, _fit_differentiable, _fit_per_shard, _is_concrete, _solve_stages
-from ._fit_model import POLARIZATIONS
+from ._fit_model import POLARIZATIONS, S_WEIGHT
 from ._fit_result import FitResult
 from ._fit_solver import _default_solver, _tol
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from jaxtyping import ArrayLike, Float, Inexact
 
 
@@ -88,6 +91,31 @@ def check_curves(theta, R, sigma, *, n_params: int, where: str = "") -> None:
             raise ValueError(f"sigma{list(k)} = {sv[k]} must be finite and positive{at}")
 
 
+def _prepared(xp, x, name):
+    """`x` checked to be real (`_validate.as_real`), as an array of `xp` (NumPy or jax.numpy)."""
+    checked = V.as_real(x, name)
+    return jnp.asarray(checked) if xp is jnp else np.asarray(x)
+
+
+def _check_polarization(polarization, batch):
+    """The one name of all curves' polarization, or, where they differ, the names broadcast to the
+    batch shape (a NumPy array)."""
+    if isinstance(polarization, str):
+        if polarization not in POLARIZATIONS:
+            raise ValueError(f"polarization must be one of {POLARIZATIONS}, got {polarization!r}")
+        return str(polarization)
+    names = np.asarray(polarization, dtype=object)
+    for k, x in np.ndenumerate(names):
+        if not isinstance(x, str) or x not in POLARIZATIONS:
+            raise ValueError(f"polarization{list(k)} must be one of {POLARIZATIONS}, got {x!r}")
+    try:
+        names = np.broadcast_to(names, batch)
+    except ValueError:
+        raise ValueError(f"polarization has shape {names.shape}, which does not broadcast to the batch shape "
+                         f"{tuple(batch)} of R") from None
+    return str(names.flat[0]) if names.size and np.all(names == names.flat[0]) else names
+
+
 def _warn_if_x64_off(*xs):
     if not jax.config.jax_enable_x64 and any(np.asarray(x).dtype == np.float64 for x in xs if not isinstance(x, jax.Array)):
         warnings.warn(
@@ -98,7 +126,7 @@ def _warn_if_x64_off(*xs):
 
 
 def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, eta1: float = 1.0,
-            polarization: str = "unpolarized", sigma: Float[ArrayLike, "*#batch #m"] | None = None,
+            polarization: str | Sequence[str] = "unpolarized", sigma: Float[ArrayLike, "*#batch #m"] | None = None,
             init: Inexact[ArrayLike, "*#batch"] | None = None, absorbing: bool = False,
             solver: optx.AbstractLeastSquaresSolver | None = None, max_steps: int = 256) -> FitResult:
     r"""Fit the index of the reflecting medium to reflectance-versus-angle data.
@@ -110,7 +138,9 @@ def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, e
       fitted independently, all in one compiled, batched call.
     - `eta1`: known (real) index of the incident medium. It may exceed the fitted index (internal
       reflection data with a TIR plateau).
-    - `polarization`: `"unpolarized"`, `"s"` or `"p"`.
+    - `polarization`: `"unpolarized"`, `"s"` or `"p"`; or one of these per curve (a sequence or
+      array of names broadcastable to the batch shape), e.g. `("s", "p")` for an s and a p curve
+      in `R` of shape `(2, m)`: curves in different polarizations are fitted in one compiled call.
     - `sigma`: standard deviation of each measurement (scalar, `(m,)` or `(..., m)`). Given, the
       residuals are weighted by `1/sigma` and the errors are absolute; not given, the errors are
       scaled by the residual scatter (reduced chi-square).
@@ -150,35 +180,39 @@ def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, e
     **Dtype:** the fit runs in the floating dtype of `R`; with `jax_enable_x64` off, float64 NumPy
     data are fitted in float32 and a warning says so.
     """
-    if polarization not in POLARIZATIONS:
-        raise ValueError(f"polarization must be one of {POLARIZATIONS}, got {polarization!r}")
+    polarization = _check_polarization(polarization, np.shape(R)[:-1])
     p = 2 if absorbing else 1
     concrete = _is_concrete(theta, R, sigma)
     if concrete:
         _warn_if_x64_off(theta, R)  # looks at the dtype the caller passed, before conversion
-    R = jnp.asarray(V.as_real(R, "R"))
-    if concrete:  # checked where it will be fitted, by one compiled reduction
+    # Plain NumPy or Python input is prepared in NumPy: each small eager JAX operation here would be
+    # a program of its own, compiled (or looked up in the compilation cache) on a first call.
+    xp = jnp if any(isinstance(x, jax.Array) for x in (theta, R, sigma, init)) or not concrete else np
+    R = _prepared(xp, R, "R")
+    if concrete:  # checked where it will be fitted (a jax.Array by one compiled reduction)
         check_curves(theta, R, sigma, n_params=p)
     if not np.isscalar(eta1) and np.ndim(eta1) != 0:
         raise ValueError(f"eta1 must be a scalar, got shape {np.shape(eta1)}")
-    theta = jnp.asarray(V.as_real(theta, "theta"))
+    theta = _prepared(xp, theta, "theta")
     dt = V.float_dtype(R, theta)
     R, theta = R.astype(dt), theta.astype(dt)
     batch, m = R.shape[:-1], R.shape[-1]
     Rf = R.reshape(-1, m)
     if sigma is None:
-        w = jnp.ones((Rf.shape[0], 1), dt)
+        w = xp.ones((Rf.shape[0], 1), dt)
     else:
-        w = jnp.broadcast_to(1 / jnp.asarray(V.as_real(sigma, "sigma"), dt), R.shape).reshape(-1, m)
+        w = xp.broadcast_to(1 / _prepared(xp, sigma, "sigma").astype(dt), R.shape).reshape(-1, m)
     use_init = init is not None
     if use_init:
-        init = jnp.broadcast_to(jnp.asarray(init), batch).reshape(-1)
-        y_init = (jnp.stack([jnp.real(init), jnp.imag(init)], -1) if absorbing else jnp.real(init)[:, None]).astype(dt)
+        init = xp.broadcast_to(xp.asarray(init), batch).reshape(-1)
+        y_init = (xp.stack([xp.real(init), xp.imag(init)], -1) if absorbing else xp.real(init)[:, None]).astype(dt)
     else:
-        y_init = jnp.zeros((Rf.shape[0], p), dt)
+        y_init = xp.zeros((Rf.shape[0], p), dt)
     retry = solver is None and not absorbing
     solver = _default_solver(dt, absorbing) if solver is None else solver
     lm: optx.LevenbergMarquardt | None = optx.LevenbergMarquardt(rtol=_tol(dt), atol=_tol(dt)) if retry else None
+    if not isinstance(polarization, str):  # per curve: the weight of s-polarized light, data of the one program
+        polarization = jnp.asarray(np.vectorize(S_WEIGHT.get, otypes=[float])(polarization).reshape(-1), dt)
     kw = dict(polarization=polarization, absorbing=absorbing, max_steps=int(max_steps), sigma_given=sigma is not None,
               solver=solver, lm=lm, use_init=use_init)
     eta1_arr = jnp.asarray(eta1, dt)
@@ -189,4 +223,10 @@ def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, e
         res = fit(theta, Rf, w, eta1_arr, y_init, kw)
     else:
         res = _fit_per_shard(shards, theta, Rf, w, eta1_arr, y_init, kw)
+    return res if batch == (len(Rf),) else _reshaped(res, batch)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _reshaped(res, batch):
+    """Every field of a fit result with the batch shape: one program for all fields."""
     return jax.tree_util.tree_map(lambda x: x.reshape(batch + x.shape[1:]), res)

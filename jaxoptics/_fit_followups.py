@@ -19,6 +19,7 @@ import numpy as np
 from ._fit_model import _reflectance
 from ._fit_result import FitResult
 from ._fit_solver import _errors, _fit_batch, _fit_block
+from ._fit_starts import _per_curve
 
 # Curves whose start on the other branch fits within this factor of the solution's sum of
 # squares (on the start's 16 angles) are solved on that branch too (see `_second_branch`).
@@ -39,6 +40,11 @@ def _where(mask, a, b):
     return jax.tree_util.tree_map(lambda x, y: jnp.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
 
 
+def _take(polarization, idx):
+    """The polarization of the curves `idx`: a name stays, per-curve weights are gathered."""
+    return polarization if _per_curve(polarization) is None else polarization[idx]
+
+
 def _solve_masked(mask, starts, res, theta, R, w, eta1, solver, lm, kw):
     """The curves where `mask` solved again from `starts` (with `solver`, then with `lm` where that
     does not converge, when `lm` is given): a `FitResult` over the whole batch, equal to `res`
@@ -54,11 +60,12 @@ def _solve_masked(mask, starts, res, theta, R, w, eta1, solver, lm, kw):
     count = jnp.sum(mask)
 
     def block(idx):
-        sub = _fit_block(theta, R[idx], w[idx], eta1, starts[idx], solver=solver, use_init=True, **kw)[0]
+        kw_idx = dict(kw, polarization=_take(kw["polarization"], idx))
+        sub = _fit_block(theta, R[idx], w[idx], eta1, starts[idx], solver=solver, use_init=True, **kw_idx)[0]
         if lm is None:
             return sub
         again = lambda: _where(sub.converged, sub, _fit_block(theta, R[idx], w[idx], eta1, starts[idx], solver=lm,
-                                                                use_init=True, **kw)[0])
+                                                                use_init=True, **kw_idx)[0])
         return jax.lax.cond(jnp.all(sub.converged), lambda: sub, again)
 
     def body(carry):
@@ -204,29 +211,33 @@ def _implicit_jvp(primals, tangents, kw):
     to_q = lambda eta: jnp.stack([jnp.real(eta), jnp.imag(eta)], -1) if absorbing else eta[:, None]
     to_eta = lambda q: jax.lax.complex(q[..., 0], q[..., 1]) if absorbing else q[..., 0]
 
-    def residuals(q, th, R1, w1, e1):
-        r = _reflectance(jnp.cos(th), e1, to_eta(q), pol) - R1
+    per_curve = _per_curve(pol)  # vmapped with the curves when per-curve weights, else None
+    one_pol = lambda p1: pol if p1 is None else p1
+
+    def residuals(q, th, R1, w1, p1, e1):
+        r = _reflectance(jnp.cos(th), e1, to_eta(q), one_pol(p1)) - R1
         return r * w1 if sg else r
 
-    def grad_loss(q, th, R1, w1, e1):
-        return jax.grad(lambda q: 0.5 * jnp.sum(residuals(q, th, R1, w1, e1) ** 2))(q)
+    def grad_loss(q, th, R1, w1, p1, e1):
+        return jax.grad(lambda q: 0.5 * jnp.sum(residuals(q, th, R1, w1, p1, e1) ** 2))(q)
 
-    def dq_one(q, R1, w1, dR1, dw1):
-        H = jax.jacfwd(grad_loss)(q, theta, R1, w1, eta1)
-        dF = jax.jvp(lambda th, r1, v1, e1: grad_loss(q, th, r1, v1, e1), (theta, R1, w1, eta1),
+    def dq_one(q, R1, w1, p1, dR1, dw1):
+        H = jax.jacfwd(grad_loss)(q, theta, R1, w1, p1, eta1)
+        dF = jax.jvp(lambda th, r1, v1, e1: grad_loss(q, th, r1, v1, p1, e1), (theta, R1, w1, eta1),
                      (dtheta, dR1, dw1, deta1))[1]
         return -jnp.linalg.solve(H, dF)
 
     q = to_q(res.eta)
-    dq = jax.vmap(dq_one)(q, R, w, dR, dw)
+    dq = jax.vmap(dq_one)(q, R, w, per_curve, dR, dw)
     has_alt = jnp.isfinite(res.eta_alt)
     q_alt = jnp.where(has_alt, res.eta_alt, res.eta)[:, None] if not absorbing else q
-    dq_alt = jnp.where(has_alt[:, None], jax.vmap(dq_one)(q_alt, R, w, dR, dw), 0) if not absorbing else jnp.zeros_like(dq)
+    dq_alt = (jnp.where(has_alt[:, None], jax.vmap(dq_one)(q_alt, R, w, per_curve, dR, dw), 0) if not absorbing
+              else jnp.zeros_like(dq))
 
     def fields(q, q_alt, th, R, w, e1):
-        one = lambda q1, R1, w1: _errors(_reflectance, jnp.cos(th), R1, w1 if sg else None, e1, q1,
-                                         polarization=pol, absorbing=absorbing, sigma_given=sg)
-        cov, se, rms, chi2 = jax.vmap(one)(q, R, w)
+        one = lambda q1, R1, w1, p1: _errors(_reflectance, jnp.cos(th), R1, w1 if sg else None, e1, q1,
+                                             polarization=one_pol(p1), absorbing=absorbing, sigma_given=sg)
+        cov, se, rms, chi2 = jax.vmap(one)(q, R, w, per_curve)
         if absorbing:
             return jax.lax.complex(se[:, 0], se[:, 1]), cov, rms, chi2
         gap2 = jnp.where(has_alt, (q[:, 0] - q_alt[:, 0]) ** 2, 0)
@@ -270,15 +281,19 @@ def _fit_per_shard(shards, theta, R, w, eta1, y_init, kw):
     """
     sh = R.sharding
     results = []
+    def on_device(s):  # what the device of shard s fits: its curves' weights and polarizations, the rest copied
+        sl = s.index[0]
+        put = lambda x: jax.device_put(x, s.device)
+        per_curve = _per_curve(kw["polarization"])
+        kw_s = kw if per_curve is None else dict(kw, polarization=put(per_curve[sl]))
+        return (put(theta), s.data, put(w[sl]), put(eta1), put(y_init[sl])), kw_s
+
     for s in shards:  # dispatch all first: the devices work concurrently
-        sl = s.index[0]
-        put = lambda x: jax.device_put(x, s.device)
-        results.append(_first(put(theta), s.data, put(w[sl]), put(eta1), put(y_init[sl]),
-                              **{k: v for k, v in kw.items() if k != "lm"}))
+        args, kw_s = on_device(s)
+        results.append(_first(*args, **{k: v for k, v in kw_s.items() if k != "lm"}))
     for k, s in enumerate(shards):
-        sl = s.index[0]
-        put = lambda x: jax.device_put(x, s.device)
-        results[k] = _solve(put(theta), s.data, put(w[sl]), put(eta1), put(y_init[sl]), first=results[k], **kw)
+        args, kw_s = on_device(s)
+        results[k] = _solve(*args, first=results[k], **kw_s)
     P = jax.sharding.PartitionSpec
     ax = sh.spec[0]
 

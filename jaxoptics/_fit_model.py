@@ -18,12 +18,27 @@ if TYPE_CHECKING:
 
 POLARIZATIONS = ("unpolarized", "s", "p")
 
+# The weight of s-polarized light in the measured reflectance, per polarization: a batch of curves
+# in different polarizations is fitted in one program with R = a R_s + (1 - a) R_p per curve.
+S_WEIGHT = {"s": 1.0, "p": 0.0, "unpolarized": 0.5}
+
+
+def _mix(polarization, s, p):
+    """The quantity of one polarization from thunks `s()` and `p()` of its s and p parts:
+    `polarization` is `"s"`, `"p"` or `"unpolarized"` (static: only what is needed is computed),
+    or an array `a`, the weight of s-polarized light (broadcast against the parts): `a s + (1 - a) p`."""
+    if isinstance(polarization, str):
+        return {"s": s, "p": p, "unpolarized": lambda: 0.5 * (s() + p())}[polarization]()
+    vs, vp = s(), p()
+    a = polarization.astype(jnp.result_type(vs, vp))  # (complex parts: explicit, for strict dtype promotion)
+    return a * vs + (1 - a) * vp
+
 
 def _reflectance(cos_i, eta1, eta2, polarization):
-    if polarization == "unpolarized":
+    if isinstance(polarization, str) and polarization == "unpolarized":
         return fresnel(cos_i, eta1, eta2)
     R_s, R_p = fresnel_sp(cos_i, eta1, eta2)
-    return R_s if polarization == "s" else R_p
+    return _mix(polarization, lambda: R_s, lambda: R_p)
 
 
 def _kt_squared_plain(ki, eta1, eta2):
@@ -50,14 +65,16 @@ def _reflectance_d_eta2(cos_i, eta1, eta2, polarization):
     e1sq, e2sq = eta1 * eta1, eta2 * eta2
     q = _kt_squared_plain(ki, eta1, eta2)
     kt = jnp.sqrt(jnp.maximum(q, jnp.finfo(q.dtype).tiny))
-    if polarization != "p":
+
+    def d_s():
         ds = ki + kt
-        d_s = -4 * ki * eta2 * (ki - kt) / (kt * ds * ds * ds)
-    if polarization != "s":
+        return -4 * ki * eta2 * (ki - kt) / (kt * ds * ds * ds)
+
+    def d_p():
         dp = e2sq * ki + e1sq * kt
-        d_p = 4 * e1sq * eta2 * ki * (2 * q - e2sq) * (e2sq * ki - e1sq * kt) / (kt * dp * dp * dp)
-    d = {"s": lambda: d_s, "p": lambda: d_p, "unpolarized": lambda: 0.5 * (d_s + d_p)}[polarization]()
-    return jnp.where(q > 0, d, 0)
+        return 4 * e1sq * eta2 * ki * (2 * q - e2sq) * (e2sq * ki - e1sq * kt) / (kt * dp * dp * dp)
+
+    return jnp.where(q > 0, _mix(polarization, d_s, d_p), 0)
 
 
 def _reflectance_plain(cos_i, eta1, eta2, polarization):
@@ -80,7 +97,7 @@ def _reflectance_plain(cos_i, eta1, eta2, polarization):
     kt = jnp.sqrt(jnp.maximum(_kt_squared_plain(ki, eta1, eta2), 0))  # 0 under TIR: R = 1
     rs = (ki - kt) / (ki + kt)
     rp = (e2sq * ki - e1sq * kt) / (e2sq * ki + e1sq * kt)
-    R = {"s": lambda: rs * rs, "p": lambda: rp * rp, "unpolarized": lambda: 0.5 * (rs * rs + rp * rp)}[polarization]()
+    R = _mix(polarization, lambda: rs * rs, lambda: rp * rp)
     # 0/0 only at exact grazing incidence with k_t = 0: no interface if eta1 == eta2 (R = 0), else
     # the grazing limit under TIR (R = 1). Written as `== 0` so that a NaN candidate (the TIR-onset
     # estimate of a curve without a plateau) keeps R = NaN and is never chosen: `> 0` made its R
@@ -108,7 +125,7 @@ def _reflectance_complex_plain(cos_i, eta1, eta2, polarization):
     ki, kt, ds, dp, e1sq, e2sq = _amplitudes_complex(cos_i, eta1, eta2)
     rs, rp = (ki - kt) / ds, (e2sq * ki - e1sq * kt) / dp
     a2 = lambda z: jnp.real(z) ** 2 + jnp.imag(z) ** 2
-    R = {"s": lambda: a2(rs), "p": lambda: a2(rp), "unpolarized": lambda: 0.5 * (a2(rs) + a2(rp))}[polarization]()
+    R = _mix(polarization, lambda: a2(rs), lambda: a2(rp))
     return jnp.where(jnp.real(ds) == 0, jnp.where(eta1 == jnp.real(eta2), 0, 1), R)
 
 
@@ -116,9 +133,9 @@ def _reflectance_complex_grad(cos_i, eta1, eta2, polarization):
     """G with dR = Re(G d eta2): G = 2 conj(r) dr/deta2 for one polarization, the mean for both.
     dr_s/deta2 = -2 k_i eta2 / (k_t D_s^2), dr_p/deta2 = 2 eta1^2 eta2 k_i (2 k_t^2 - eta2^2) / (k_t D_p^2)."""
     ki, kt, ds, dp, e1sq, e2sq = _amplitudes_complex(cos_i, eta1, eta2)
-    gs = jnp.conj((ki - kt) / ds) * (-2 * ki * eta2 / (kt * ds * ds))
-    gp = jnp.conj((e2sq * ki - e1sq * kt) / dp) * (2 * e1sq * eta2 * ki * (2 * kt * kt - e2sq) / (kt * dp * dp))
-    G = {"s": lambda: 2 * gs, "p": lambda: 2 * gp, "unpolarized": lambda: gs + gp}[polarization]()
+    gs = lambda: 2 * jnp.conj((ki - kt) / ds) * (-2 * ki * eta2 / (kt * ds * ds))
+    gp = lambda: 2 * jnp.conj((e2sq * ki - e1sq * kt) / dp) * (2 * e1sq * eta2 * ki * (2 * kt * kt - e2sq) / (kt * dp * dp))
+    G = _mix(polarization, gs, gp)
     return jnp.where(jnp.abs(kt) > 0, G, 0)
 
 
@@ -129,10 +146,9 @@ def _reflectance_fit(cos_i, eta1, eta2, polarization):
     return plain(cos_i, eta1, eta2, polarization)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
 def _model(cos_i, eta1, eta2, polarization):
     """`_reflectance_fit`, whose derivative in `eta2` is in closed form and compiles to a loop of
-    its own.
+    its own (`polarization`: a name, or the weights of s-polarized light, as in `_mix`).
 
     The solver linearizes the model at every step and needs the residuals and the Jacobian over all
     (curves x angles). Derived together, they share quotients, which XLA on the CPU writes to
@@ -141,16 +157,24 @@ def _model(cos_i, eta1, eta2, polarization):
     (complex: `dR = Re(G d eta2)`), on inputs passed through an optimization barrier (`_own_loop`)
     so that no common subexpression ties it to the model's loop.
     """
-    return _reflectance_fit(cos_i, eta1, eta2, polarization)
+    if isinstance(polarization, str):
+        return _model_rule(cos_i, eta1, eta2, None, polarization)
+    return _model_rule(cos_i, eta1, eta2, polarization, None)
 
 
-@functools.partial(_model.defjvp, symbolic_zeros=True)
-def _model_jvp(polarization, primals, tangents):
-    cos_i, eta1, eta2 = primals
-    out = _model(cos_i, eta1, eta2, polarization)
-    dc, de1, de2 = tangents
-    if type(dc) is not SymbolicZero or type(de1) is not SymbolicZero:
-        raise NotImplementedError("the fits' model is differentiated in eta2 only (angles and eta1 are data)")
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
+def _model_rule(cos_i, eta1, eta2, weight, name):
+    return _reflectance_fit(cos_i, eta1, eta2, name if weight is None else weight)
+
+
+@functools.partial(_model_rule.defjvp, symbolic_zeros=True)
+def _model_jvp(name, primals, tangents):
+    cos_i, eta1, eta2, weight = primals
+    polarization = name if weight is None else weight
+    out = _model_rule(cos_i, eta1, eta2, weight, name)
+    dc, de1, de2, dw = tangents
+    if any(type(t) not in (SymbolicZero, type(None)) for t in (dc, de1, dw)):
+        raise NotImplementedError("the fits' model is differentiated in eta2 only (angles, eta1 and polarization are data)")
     if type(de2) is SymbolicZero:
         return out, jnp.zeros_like(out)
     copies = _own_loop(cos_i, eta1, eta2)

@@ -13,7 +13,7 @@ from jax.flatten_util import ravel_pytree
 
 from ._fit_model import _model, _reflectance_fit, _reflectance_plain
 from ._fit_result import FitResult
-from ._fit_starts import _first_argmin, _score_columns, _start
+from ._fit_starts import _first_argmin, _per_curve, _score_columns, _start
 from ._fresnel import materialize
 
 
@@ -219,17 +219,19 @@ _BLOCK_POINTS = 2 ** 17
 
 
 def _fit_batch(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, max_steps, use_init, sigma_given):
-    kw = dict(polarization=polarization, absorbing=absorbing, solver=solver, max_steps=max_steps, use_init=use_init,
-              sigma_given=sigma_given)
+    """`polarization`: a name for all curves, or the weight of s-polarized light per curve, `(B,)`."""
+    kw = dict(absorbing=absorbing, solver=solver, max_steps=max_steps, use_init=use_init, sigma_given=sigma_given)
     B, m = R.shape
     k = -(-B // max(1, _BLOCK_POINTS // m))  # number of blocks
     if k <= 1:
-        return _fit_block(theta, R, w, eta1, y_init, **kw)
+        return _fit_block(theta, R, w, eta1, y_init, polarization=polarization, **kw)
     C = -(-B // k)  # curves per block; the last block is padded with copies of the last curve
     pad = k * C - B
     blocks = lambda x: (jnp.concatenate([x, jnp.broadcast_to(x[-1:], (pad,) + x.shape[1:])]) if pad else x
                         ).reshape((k, C) + x.shape[1:])
-    out = jax.lax.map(lambda a: _fit_block(theta, a[0], a[1], eta1, a[2], **kw), (blocks(R), blocks(w), blocks(y_init)))
+    per_curve = _per_curve(polarization)
+    out = jax.lax.map(lambda a: _fit_block(theta, a[0], a[1], eta1, a[2], polarization=polarization if a[3] is None else a[3], **kw),
+                      (blocks(R), blocks(w), blocks(y_init), None if per_curve is None else blocks(per_curve)))
     return jax.tree_util.tree_map(lambda x: x.reshape((k * C,) + x.shape[2:])[:B], out)
 
 
@@ -242,17 +244,18 @@ def _fit_block(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, ma
     # The m cosines, computed once and stored: left to itself XLA fused jnp.cos into the loops
     # over all (B, m) residuals after the solve and took 10^6 cosines in each.
     cos_i = materialize(jnp.cos(theta))
+    per_curve = _per_curve(polarization)
     if use_init:
         y0 = y_init
     else:
 
-        def residual(y, R1, w1, cols):
-            return _weigh(_reflectance_fit(cos_i[cols], eta1, _params_to_eta(y, absorbing), polarization) - R1, w1)
+        def residual(y, R1, w1, p1, cols):
+            return _weigh(_reflectance_fit(cos_i[cols], eta1, _params_to_eta(y, absorbing), p1) - R1, w1)
 
         y0, alt = _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization)
-    one = lambda R1, w1, y1: _fit_one(cos_i, R1, w1, eta1, y1, polarization=polarization, absorbing=absorbing,
-                                      solver=solver, max_steps=max_steps, sigma_given=sigma_given)
-    res = jax.vmap(one)(R, w, y0)
+    one = lambda R1, w1, y1, p1: _fit_one(cos_i, R1, w1, eta1, y1, polarization=polarization if p1 is None else p1,
+                                          absorbing=absorbing, solver=solver, max_steps=max_steps, sigma_given=sigma_given)
+    res = jax.vmap(one)(R, w, y0, per_curve)
     if use_init:
         return res, y0, y_init, jnp.full(R.shape[:1], jnp.inf, R.dtype)
     if absorbing:  # k fitted as exactly 0: flagged with ratio 0 (see `_absorbing_restart`)
@@ -264,7 +267,8 @@ def _fit_block(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, ma
     # a 40 ms fit of 10^4 curves (the kernel on (curves, 2, angles) splits into several loops).
     cols = _score_columns(R.shape[-1])
     cands = jnp.stack([res.eta[:, None], alt, (eta1 * eta1 / res.eta)[:, None]], axis=1)  # (B, 3, 1)
-    r = _weigh(_reflectance_plain(cos_i[cols], eta1, cands, polarization) - R[:, None, cols],
+    pol = polarization if per_curve is None else per_curve[:, None, None]
+    r = _weigh(_reflectance_plain(cos_i[cols], eta1, cands, pol) - R[:, None, cols],
                None if w is None else w[:, None, cols])
     sse = jnp.sum(r * r, axis=-1)  # (B, 3)
     k = 1 + _first_argmin(sse[:, 1:])

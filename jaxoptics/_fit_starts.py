@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._fit_model import _reflectance
+from ._fresnel import fresnel_sp
 
 
 def _grid(eta1, absorbing, dtype):
@@ -67,31 +68,54 @@ def _score_columns(m):
     return np.unique(np.linspace(0, m - 1, min(m, 16)).round().astype(int))
 
 
+def _per_curve(polarization):
+    """The weights of s-polarized light, one per curve, when `polarization` is not one name for
+    all curves (see `_fit_model._mix`); else None."""
+    return None if isinstance(polarization, str) else polarization
+
+
 def _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization):
     """Best starting point per curve (vmapped over curves): the shared grid is scored for all
     curves at once with matrix products (sum w^2 (Rg - R)^2 expanded), the few per-curve
     candidates (heuristics, the refined grid point) on at most 16 of the angles, evenly spread:
     the start only has to land in the right basin, and scoring them on every angle was a third of
     the whole fit's time (measured, 10^4 curves x 90 angles). All candidates are ranked on those
-    same angles."""
+    same angles. `polarization`: a name, or the weight of s-polarized light per curve, `(B,)`;
+    `residual(y, R1, w1, polarization, cols)` is one curve's residual on the angles `cols`."""
     grid = _grid(eta1, absorbing, R.dtype)
     eta_g = jax.lax.complex(grid[:, 0], grid[:, 1]) if absorbing else grid[:, 0]
-    Rg = _reflectance(cos_i[None, :], eta1, eta_g[:, None], polarization)  # (K, m), shared
     w2 = None if w is None else w * w
+    per_curve = _per_curve(polarization)
+    if per_curve is None:
+        # the grid's curves, shared: (K, m)
+        parts = ((_reflectance(cos_i[None, :], eta1, eta_g[:, None], polarization), None),)
+    else:  # curve b's grid curves are a_b G_s + (1 - a_b) G_p
+        G_s, G_p = fresnel_sp(cos_i[None, :], eta1, eta_g[:, None])
+        a = per_curve[:, None]
+        parts = ((G_s, a), (G_p, 1 - a))
 
     def grid_sse(cols):
-        Rg_, R_ = Rg[:, cols], R[:, cols]
-        if w is None:  # unit weights: one matrix product instead of two
-            sse = jnp.sum(Rg_ * Rg_, -1)[None, :] - 2 * (R_ @ Rg_.T) + jnp.sum(R_ * R_, -1, keepdims=True)
-        else:
-            w2_ = w2[:, cols]
-            sse = (w2_ @ (Rg_ * Rg_).T) - 2 * ((w2_ * R_) @ Rg_.T) + jnp.sum(w2_ * R_ * R_, -1, keepdims=True)
+        # sum_j w_j^2 (sum_i c_i G_ij - R_j)^2 expanded into matrix products over the grid
+        R_, w2_ = R[:, cols], None if w2 is None else w2[:, cols]
+        wsum = (lambda X: jnp.sum(X, -1)[None, :]) if w2_ is None else (lambda X: w2_ @ X.T)  # unit weights: one product fewer
+        wR = R_ if w2_ is None else w2_ * R_
+        sse = 0
+        for i, (G_i, c_i) in enumerate(parts):
+            for G_j, c_j in parts[i:]:
+                term = wsum(G_i[:, cols] * G_j[:, cols])
+                sse = sse + (term if c_i is None else (1 if G_j is G_i else 2) * c_i * c_j * term)
+        for G_i, c_i in parts:
+            term = wR @ G_i[:, cols].T
+            sse = sse - 2 * (term if c_i is None else c_i * term)
+        sse = sse + jnp.sum(wR * R_, -1, keepdims=True)
         return jnp.where(jnp.isfinite(sse), sse, jnp.inf)
 
     sub = _score_columns(theta.shape[0])
-    score = lambda y, R1, w1: jnp.sum(residual(y, R1[sub], None if w1 is None else w1[sub], sub) ** 2)
+    score = lambda y, R1, w1, p1: jnp.sum(residual(y, R1[sub], None if w1 is None else w1[sub],
+                                                   polarization if p1 is None else p1, sub) ** 2)
+    score_all = jax.vmap(lambda ys, R1, w1, p1: jax.vmap(lambda y: score(y, R1, w1, p1))(ys))
     heur = jax.vmap(lambda R1: _heuristics(theta, R1, eta1, absorbing))(R)  # (B, 4, p)
-    sse_heur = jax.vmap(lambda hs, w1, R1: jax.vmap(lambda y: score(y, R1, w1))(hs))(heur, w, R)
+    sse_heur = score_all(heur, R, w, per_curve)
     sse_grid = grid_sse(sub)
     if not absorbing:
         # Refine the best grid point (scored on every angle) by the vertex of the parabola (in
@@ -117,7 +141,7 @@ def _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization):
             return jnp.exp(jnp.clip(xv, x0, x2))[:, None]
 
         refined = jnp.stack([refine(0, K // 2), refine(K // 2, K)], axis=1)  # (B, 2, 1)
-        sse_ref = jax.vmap(lambda ys, R1, w1: jax.vmap(lambda y: score(y, R1, w1))(ys))(refined, R, w)
+        sse_ref = score_all(refined, R, w, per_curve)
         cands = jnp.concatenate([jnp.broadcast_to(grid, (R.shape[0],) + grid.shape), heur, refined], axis=1)
         sse = jnp.concatenate([sse_grid, sse_heur, sse_ref], axis=1)
         y0 = jnp.take_along_axis(cands, _first_argmin(sse)[:, None, None], axis=1)[:, 0]

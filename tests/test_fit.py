@@ -300,6 +300,34 @@ def test_batch_equals_individual_fits_and_keeps_shape():
             np.testing.assert_allclose(float(one.stderr), float(r.stderr[a, b]), rtol=1e-9)
 
 
+def test_curves_in_different_polarizations_fit_in_one_call():
+    """A batch whose curves are in different polarizations (one name per curve, broadcast to the
+    batch shape) gives each curve the fit of its own polarization: the same estimates, errors and
+    follow-ups (internal reflection's second branch, absorbing media's restart), in one call."""
+    th = THETA[THETA < 1.2]
+    pols = ("s", "p", "unpolarized")
+    cases = [dict(eta1=1.0, etas=[1.33, 2.4]), dict(eta1=1.5, etas=[1.1, 1.45]), dict(eta1=1.0, etas=[0.2 + 3j, 1.5 + 0.5j])]
+    for k, case in enumerate(cases):
+        eta1, absorbing = case["eta1"], isinstance(case["etas"][0], complex)
+        truth = np.array(case["etas"])[:, None] * np.ones(len(pols))  # (2, 3): polarization along the last axis
+        rng = np.random.default_rng(k)
+        R = np.stack([[tmm_curve(eta1, n, th, p) for p in pols] for n in case["etas"]]) + 1e-3 * rng.normal(size=truth.shape + th.shape)
+        r = jo.fit_eta(th, R, eta1=eta1, polarization=pols, absorbing=absorbing)
+        assert r.eta.shape == truth.shape and bool(jnp.all(r.converged))
+        assert float(jnp.max(jnp.abs(r.eta - truth) / jnp.abs(r.stderr))) < 5
+        for a in range(truth.shape[0]):
+            for b, p in enumerate(pols):
+                one = _fit_eta(th, R[a, b], eta1=eta1, polarization=p, absorbing=absorbing)  # (eager only)
+                np.testing.assert_allclose(complex(r.eta[a, b]), complex(one.eta), rtol=1e-12)
+                np.testing.assert_allclose(complex(r.stderr[a, b]), complex(one.stderr), rtol=1e-9)
+                np.testing.assert_array_equal(np.asarray(r.eta_alt[a, b]), np.asarray(one.eta_alt))
+    R = np.asarray(jo.synthetic_reflectance(None, jnp.array([1.5, 1.6]), THETA))
+    with pytest.raises(ValueError, match=r"polarization\[1\] must be one of"):
+        jo.fit_eta(THETA, R, polarization=("s", "te"))
+    with pytest.raises(ValueError, match=r"polarization has shape \(3,\), which does not broadcast to the batch shape \(2,\)"):
+        jo.fit_eta(THETA, R, polarization=("s", "p", "s"))
+
+
 def test_wide_range_all_converge():
     etas = jnp.concatenate([jnp.linspace(1.01, 4.0, 300)])
     R = jo.synthetic_reflectance(jax.random.PRNGKey(3), etas, THETA, noise=1e-3)
