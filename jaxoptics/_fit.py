@@ -93,8 +93,7 @@ def check_curves(theta, R, sigma, *, n_params: int, where: str = "") -> None:
 
 def _prepared(xp, x, name):
     """`x` checked to be real (`_validate.as_real`), as an array of `xp` (NumPy or jax.numpy)."""
-    checked = V.as_real(x, name)
-    return jnp.asarray(checked) if xp is jnp else np.asarray(x)
+    return V.as_real(x, name) if xp is jnp else np.asarray(V.check_real(x, name))
 
 
 def _check_polarization(polarization, batch):
@@ -212,10 +211,10 @@ def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, e
     solver = _default_solver(dt, absorbing) if solver is None else solver
     lm: optx.LevenbergMarquardt | None = optx.LevenbergMarquardt(rtol=_tol(dt), atol=_tol(dt)) if retry else None
     if not isinstance(polarization, str):  # per curve: the weight of s-polarized light, data of the one program
-        polarization = jnp.asarray(np.vectorize(S_WEIGHT.get, otypes=[float])(polarization).reshape(-1), dt)
+        polarization = xp.asarray(np.vectorize(S_WEIGHT.get, otypes=[float])(polarization).reshape(-1), dt)
     kw = dict(polarization=polarization, absorbing=absorbing, max_steps=int(max_steps), sigma_given=sigma is not None,
               solver=solver, lm=lm, use_init=use_init)
-    eta1_arr = jnp.asarray(eta1, dt)
+    eta1_arr = xp.asarray(eta1, dt)
     shards = _batch_shards(Rf)
     if shards is None:
         # concrete: nothing to differentiate, the follow-up stages compiled only when needed

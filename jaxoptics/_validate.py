@@ -23,6 +23,12 @@ def as_real(x, name: str):
     other arguments), so ``eta1=1`` works. Integer *arrays* are refused: silently computing in a
     default float dtype would hide a units or dtype mistake.
     """
+    x = check_real(x, name)
+    return x if isinstance(x, (int, float)) else jnp.asarray(x)
+
+
+def check_real(x, name: str):
+    """The checks of `as_real`, without conversion: ``x`` as given (lists as NumPy arrays)."""
     if isinstance(x, bool) or (hasattr(x, "dtype") and np.dtype(x.dtype) == np.bool_):
         raise ValueError(f"{name} must be a floating-point array or Python number, got a boolean")
     if isinstance(x, (int, float)):
@@ -37,7 +43,7 @@ def as_real(x, name: str):
             f"{name} must have a floating dtype (float32 or float64), got dtype {dt}; "
             f"convert it explicitly, e.g. {name}.astype(jnp.float32)"
         )
-    return jnp.asarray(x)
+    return x
 
 
 def as_index(x, name: str, *, allow_complex: bool):

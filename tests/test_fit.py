@@ -489,6 +489,21 @@ def test_cli_fit_file_and_errors(capsys, tmp_path):
 
 
 
+def test_cli_fits_curves_on_shared_angles_together(capsys, tmp_path):
+    """Curves of several polarizations and wavelengths, on two sets of angles: each curve's line
+    reports its own index (data from tmm), in the file's curve order."""
+    th_a, th_b = THETA[::6], THETA[3::7]
+    truth = [(0.5, "p", th_a, 1.45), (0.5, "s", th_b, 1.46), (0.6, "s", th_a, 1.70), (0.6, "unpolarized", th_a, 2.10)]
+    rows = [f"{np.rad2deg(t):.10f},{r:.14f},{pol},{lam}" for lam, pol, th, n in truth
+            for t, r in zip(th, tmm_curve(1.0, n, th, pol))]
+    p = _write(tmp_path, "angle_deg,R,polarization,wavelength_um\n" + "\n".join(rows) + "\n")
+    assert main(["fit", str(p), "--no-cache"]) == 0
+    lines = [l.split() for l in capsys.readouterr().out.splitlines() if l.split()[:1] in (["0.5"], ["0.6"])]
+    assert [(float(l[0]), l[1]) for l in lines] == [(lam, pol) for lam, pol, _, _ in truth]
+    for l, (_, _, th, n) in zip(lines, truth):
+        assert int(l[2]) == th.size and abs(float(l[3]) - n) < 1e-6
+
+
 def test_cli_reports_an_index_the_data_cannot_exclude(capsys, tmp_path):
     """Measured at 0-15 degrees only, this curve (eta = 1.2) fits about as well with 0.834: the
     CLI says so next to the fit, and the standard error covers both."""
