@@ -91,9 +91,9 @@ def check_curves(theta, R, sigma, *, n_params: int, where: str = "") -> None:
             raise ValueError(f"sigma{list(k)} = {sv[k]} must be finite and positive{at}")
 
 
-def _prepared(xp, x, name):
+def _prepared(xp, x, name: str) -> jax.Array | np.ndarray:
     """`x` checked to be real (`_validate.as_real`), as an array of `xp` (NumPy or jax.numpy)."""
-    return V.as_real(x, name) if xp is jnp else np.asarray(V.check_real(x, name))
+    return xp.asarray(V.check_real(x, name))
 
 
 def _check_polarization(polarization, batch):
@@ -186,7 +186,7 @@ def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, e
         _warn_if_x64_off(theta, R)  # looks at the dtype the caller passed, before conversion
     # Plain NumPy or Python input is prepared in NumPy: each small eager JAX operation here would be
     # a program of its own, compiled (or looked up in the compilation cache) on a first call.
-    xp = jnp if any(isinstance(x, jax.Array) for x in (theta, R, sigma, init)) or not concrete else np
+    xp = jnp if any(isinstance(x, jax.Array) for x in (theta, R, sigma, init, eta1)) or not concrete else np
     R = _prepared(xp, R, "R")
     if concrete:  # checked where it will be fitted (a jax.Array by one compiled reduction)
         check_curves(theta, R, sigma, n_params=p)
