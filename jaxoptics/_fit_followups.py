@@ -11,13 +11,12 @@ eagerly, under `jax.jit` and under `jax.vmap` (see `_solve` for when each stage 
 
 from __future__ import annotations
 
-import functools
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._compile import filter_jit
 from ._fit_model import _reflectance
 from ._fit_result import FitResult
 from ._fit_solver import _errors, _fit_batch, _fit_block
@@ -135,58 +134,31 @@ def _absorbing_restart(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
     return _where(better, sub, res)
 
 
-# Fits over at most this many points (curves x angles) are compiled with XLA's backend (LLVM)
-# optimizations off, where compiling is most of the time a fit takes. Measured on the bundled
-# example's angles (33), one program of the batched solve: 0.9-1.4 s to compile against 1.3-1.9 s,
-# and run time 0.3 against 0.25 ms for 1 or 2 curves, 4.6 against 0.7 ms for 100; for 1000 curves
-# (3 against 9 ms) a repeated call would lose what the first one gains.
+# Fits over at most this many points (curves x angles) are compiled with `QUICK_COMPILE`, where
+# compiling is most of the time a fit takes. Measured on the bundled example's angles (33), one
+# program of the batched solve: 0.9-1.4 s to compile against 1.3-1.9 s, and run time 0.3 against
+# 0.25 ms for 1 or 2 curves, 4.6 against 0.7 ms for 100; for 1000 curves (3 against 9 ms) a
+# repeated call would lose what the first one gains.
 _QUICK_COMPILE_POINTS = 4096
-_QUICK_COMPILE = {"xla_backend_optimization_level": 0}
-
-
-def _jit(fn):
-    """`fn` compiled as `eqx.filter_jit` does it (arrays traced, everything else static), with
-    `_QUICK_COMPILE` when called with `quick=True` on concrete arrays (inside the caller's own
-    `jit`, it is the caller's program that gets compiled, with the caller's options)."""
-
-    def compiled(options):
-        def run(static, dynamic):
-            treedef, leaves = static
-            args, kwargs = eqx.combine(dynamic, jax.tree_util.tree_unflatten(treedef, leaves))
-            return fn(*args, **kwargs)
-
-        run.__name__ = run.__qualname__ = fn.__name__  # the program's name in JAX's logs and profiles
-        return jax.jit(run, static_argnums=0, compiler_options=options)
-
-    runs = {False: compiled(None), True: compiled(_QUICK_COMPILE)}
-
-    @functools.wraps(fn)
-    def call(*args, quick=False, **kwargs):
-        dynamic, static = eqx.partition((args, kwargs), eqx.is_array)
-        leaves, treedef = jax.tree_util.tree_flatten(static)
-        quick = quick and _is_concrete(*jax.tree_util.tree_leaves(dynamic))
-        return runs[quick]((treedef, tuple(leaves)), dynamic)
-
-    return call
 
 
 def _quick(R):
     return R.shape[0] * R.shape[1] <= _QUICK_COMPILE_POINTS
 
 
-@_jit
+@filter_jit
 def _first(theta, R, w, eta1, y_init, **kw):
     """The batched solve, and whether any curve needs the refit or the branch stage."""
     res, start, alt, ratio = _fit_batch(theta, R, w, eta1, y_init, **kw)
     return res, start, alt, ratio, jnp.stack([~jnp.all(res.converged), jnp.any(_needs_branch(ratio, kw["absorbing"]))])
 
 
-@_jit
+@filter_jit
 def _refit_stage(res, start, theta, R, w, eta1, lm, kw):
     return _solve_masked(~res.converged, start, res, theta, R, w, eta1, lm, None, kw)
 
 
-@_jit
+@filter_jit
 def _branch_stage(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
     again = _absorbing_restart if kw["absorbing"] else _second_branch
     return again(res, alt, ratio, theta, R, w, eta1, solver, lm, kw)
