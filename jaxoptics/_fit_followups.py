@@ -20,7 +20,7 @@ from ._compile import filter_jit
 from ._fit_model import _reflectance
 from ._fit_result import FitResult
 from ._fit_solver import _errors, _fit_batch, _fit_block
-from ._fit_starts import _per_curve
+from ._fit_starts import _of_curve, _per_curve
 
 # Curves whose start on the other branch fits within this factor of the solution's sum of
 # squares (on the start's 16 angles) are solved on that branch too (see `_second_branch`).
@@ -226,10 +226,9 @@ def _implicit_jvp(primals, tangents, kw):
     to_eta = lambda q: jax.lax.complex(q[..., 0], q[..., 1]) if absorbing else q[..., 0]
 
     per_curve = _per_curve(pol)  # vmapped with the curves when per-curve weights, else None
-    one_pol = lambda p1: pol if p1 is None else p1
 
     def residuals(q, th, R1, w1, p1, e1):
-        r = _reflectance(jnp.cos(th), e1, to_eta(q), one_pol(p1)) - R1
+        r = _reflectance(jnp.cos(th), e1, to_eta(q), _of_curve(pol, p1)) - R1
         return r * w1 if sg else r
 
     def grad_loss(q, th, R1, w1, p1, e1):
@@ -250,7 +249,7 @@ def _implicit_jvp(primals, tangents, kw):
 
     def fields(q, q_alt, th, R, w, e1):
         one = lambda q1, R1, w1, p1: _errors(_reflectance, jnp.cos(th), R1, w1 if sg else None, e1, q1,
-                                             polarization=one_pol(p1), absorbing=absorbing, sigma_given=sg)
+                                             polarization=_of_curve(pol, p1), absorbing=absorbing, sigma_given=sg)
         cov, se, rms, chi2 = jax.vmap(one)(q, R, w, per_curve)
         if absorbing:
             return jax.lax.complex(se[:, 0], se[:, 1]), cov, rms, chi2

@@ -13,7 +13,7 @@ from jax.flatten_util import ravel_pytree
 
 from ._fit_model import _model, _reflectance_fit, _reflectance_plain
 from ._fit_result import FitResult
-from ._fit_starts import _first_argmin, _per_curve, _score_columns, _start
+from ._fit_starts import _first_argmin, _of_curve, _per_curve, _score_columns, _start
 from ._fresnel import materialize
 
 
@@ -230,7 +230,7 @@ def _fit_batch(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, ma
     blocks = lambda x: (jnp.concatenate([x, jnp.broadcast_to(x[-1:], (pad,) + x.shape[1:])]) if pad else x
                         ).reshape((k, C) + x.shape[1:])
     per_curve = _per_curve(polarization)
-    out = jax.lax.map(lambda a: _fit_block(theta, a[0], a[1], eta1, a[2], polarization=polarization if a[3] is None else a[3], **kw),
+    out = jax.lax.map(lambda a: _fit_block(theta, a[0], a[1], eta1, a[2], polarization=_of_curve(polarization, a[3]), **kw),
                       (blocks(R), blocks(w), blocks(y_init), None if per_curve is None else blocks(per_curve)))
     return jax.tree_util.tree_map(lambda x: x.reshape((k * C,) + x.shape[2:])[:B], out)
 
@@ -253,7 +253,7 @@ def _fit_block(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, ma
             return _weigh(_reflectance_fit(cos_i[cols], eta1, _params_to_eta(y, absorbing), p1) - R1, w1)
 
         y0, alt = _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization)
-    one = lambda R1, w1, y1, p1: _fit_one(cos_i, R1, w1, eta1, y1, polarization=polarization if p1 is None else p1,
+    one = lambda R1, w1, y1, p1: _fit_one(cos_i, R1, w1, eta1, y1, polarization=_of_curve(polarization, p1),
                                           absorbing=absorbing, solver=solver, max_steps=max_steps, sigma_given=sigma_given)
     res = jax.vmap(one)(R, w, y0, per_curve)
     if use_init:

@@ -74,6 +74,12 @@ def _per_curve(polarization):
     return None if isinstance(polarization, str) else polarization
 
 
+def _of_curve(polarization, p1):
+    """One curve's polarization inside a vmap over curves: its weight `p1` (vmapped from
+    `_per_curve`), or the name all curves share (`p1` None)."""
+    return polarization if p1 is None else p1
+
+
 def _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization):
     """Best starting point per curve (vmapped over curves): the shared grid is scored for all
     curves at once with matrix products (sum w^2 (Rg - R)^2 expanded), the few per-curve
@@ -112,7 +118,7 @@ def _start(theta, cos_i, R, w, eta1, residual, absorbing, polarization):
 
     sub = _score_columns(theta.shape[0])
     score = lambda y, R1, w1, p1: jnp.sum(residual(y, R1[sub], None if w1 is None else w1[sub],
-                                                   polarization if p1 is None else p1, sub) ** 2)
+                                                   _of_curve(polarization, p1), sub) ** 2)
     score_all = jax.vmap(lambda ys, R1, w1, p1: jax.vmap(lambda y: score(y, R1, w1, p1))(ys))
     heur = jax.vmap(lambda R1: _heuristics(theta, R1, eta1, absorbing))(R)  # (B, 4, p)
     sse_heur = score_all(heur, R, w, per_curve)
