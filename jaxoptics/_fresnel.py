@@ -142,6 +142,7 @@ def _materialize_jvp(primals, tangents):
     return materialize(x), dx
 
 
+@jax.custom_jvp
 def unpolarized(a, b):
     """`(a + b) / 2`, the unpolarized value from the s and p ones, ending in a select.
 
@@ -154,6 +155,15 @@ def unpolarized(a, b):
     select changes nothing: where `a` is NaN both sides are NaN.
     """
     return jnp.where(jnp.isnan(a), a, 0.5 * (a + b))
+
+
+@unpolarized.defjvp
+def _unpolarized_jvp(primals, tangents):
+    # (a + b) / 2 without the select: where `a` is NaN its derivative is not used. So the
+    # derivative does not read the value of `a`, and a gradient whose cotangent does not depend on
+    # the result (`grad(sum(R))`) needs no forward pass to find where `a` is NaN.
+    (a, b), (da, db) = primals, tangents
+    return unpolarized(a, b), 0.5 * (da + db)
 
 
 def sqrt_where(x, mask):

@@ -43,12 +43,19 @@ and the stack is the product of these applied to the field of the outgoing wave,
    its own critical angle (``k_{z,j} = 0``, so ``r = +-1`` on both of its faces). The matrix
    entries above are even in ``k_z``, hence entire functions of ``q``: nothing is singular there.
 3. **Exact, finite derivatives.** Because the entries are entire in ``q``, their derivatives are
-   given in closed form through a `jax.custom_jvp` (``d cos / dq = -a s / 2``, ``d s / dq =
-   (a cos - s) / (2 q)``, which cancels for small ``delta``; there ``s a**2 R(delta**2)`` with
-   ``R = (delta cot(delta) - 1) / (2 delta**2)`` by its power series), never through
-   ``dk_z / dq = 1 / (2 k_z)``. The scale factor ``g`` is given a zero derivative: every output is
-   invariant under rescaling a layer's matrix when the same factor multiplies the flux
-   normalization, so the derivatives computed this way are the exact ones.
+   given in closed form (``d cos / dq = -a s / 2``, ``d s / dq = (a cos - s) / (2 q)``, which
+   cancels for small ``delta``; there ``s a**2 R(delta**2)`` with ``R = (delta cot(delta) - 1) /
+   (2 delta**2)`` by its power series), never through ``dk_z / dq = 1 / (2 k_z)``. The scale factor
+   ``g`` is given a zero derivative: every output is invariant under rescaling a layer's matrix
+   when the same factor multiplies the flux normalization, so the derivatives computed this way
+   are the exact ones.
+
+The layer recursion has its own `jax.custom_jvp` (`_fields`): a scan over the layers that also
+records the field entering each layer and its ``c``, ``s``, then a second scan that carries the
+tangent fields, linear in the tangents, with the closed forms above. Forward mode runs both; reverse
+mode transposes only the second, which reads the recorded values instead of recomputing the layers'
+exponentials and argument reductions. The magnetic field is carried as ``-i H``, which makes the
+matrices free of the factor ``i`` (fewer complex multiplications in both scans).
 
 The only genuine branch point is that of the last medium (its critical angle, where ``k_z`` of the
 outgoing wave is 0): there the derivative with respect to the angle or the indices is infinite
@@ -268,37 +275,6 @@ def _ds_dq_series(x):
     return acc
 
 
-@jax.custom_jvp
-def _layer(q, a, kz):
-    """(c, s) for inner layers: c = g cos(delta), s = g sin(delta) / k_z with g = exp(i delta),
-    delta = a k_z, `kz` = sqrt(q) on the decaying branch (|g| <= 1). `q`, `a`, `kz` complex (a with
-    zero imaginary part; kz is not differentiated: the rule works in q). The derivative rule gives
-    c and s the derivatives of g cos(delta) and g sin(delta)/k_z *with g held constant*: see the
-    module docstring (point 3)."""
-    z = 2j * a * kz
-    e = _expm1_imag(jnp.real(z), jnp.imag(z))
-    # stored once for the four products of the step that read c and s (XLA would otherwise
-    # recompute the argument reduction and the polynomials in each of their fused loops); c and s
-    # themselves are a few multiplications from it, cheaper to recompute than to store
-    e = _materialize_complex(e)
-    return 1 + 0.5 * e, a * _exprel_from(e, z)
-
-
-@_layer.defjvp
-def _layer_jvp(primals, tangents):
-    q, a, kz = primals
-    dq, da, _ = tangents
-    c, s = _layer(q, a, kz)
-    x = a * a * q  # delta^2
-    small = _abs2(x) < _DS_SERIES_MAX**2
-    q_safe = jnp.where(small, 1, q)
-    inv_2q = jnp.conj(q_safe) * (0.5 / _abs2(q_safe)).astype(q.dtype)  # 1 / (2q), one real division
-    ds_dq = jnp.where(small, s * (a * a) * _ds_dq_series(jnp.where(small, x, 0)), (a * c - s) * inv_2q)
-    dc = -(0.5 * a * s) * dq - (q * s) * da
-    ds = ds_dq * dq + c * da
-    return (c, s), (dc, ds)
-
-
 # ---- one coherent group ------------------------------------------------------------------------
 
 
@@ -328,32 +304,7 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
     one = jnp.ones_like(kze)
     v_s, v_p = (one, kze), (kze, jnp.broadcast_to(ne * ne, kze.shape))
     if m:
-        def step(carry, lay):
-            (Es, Hs), (Ep, Hp), S = carry
-            nj, dj = lay
-            # n^2 and 1/n^2 here, from the layer's index: (un-broadcast, these are a few scalar
-            # operations; with them as separate scan inputs the backward pass would sum three
-            # cotangents over the batch for each layer instead of one)
-            nsq = nj * nj
-            inv_nsq = 1 / nsq
-            # k_z^2 once and stored (`materialize`): XLA otherwise recomputes it in each fused loop
-            # that reads it, contracting multiply-adds differently, and where it is near 0 (the layer
-            # at its critical angle) the copies fall on both sides of 0 and the root's branch
-            # differs between loops (tested: R = 0.22 instead of 1 in jitted float32)
-            q = _materialize_complex(kz_sq(nj))
-            aj = jnp.broadcast_to(k0 * dj, q.shape).astype(q.dtype)
-            # k_z once; the scale factors exp(i a k_z) carry no derivative (module docstring, 3)
-            kz = jax.lax.stop_gradient(_decaying_root(q))
-            c, s = _layer(q, aj, kz)
-            ws = (c * Es - 1j * s * Hs, -1j * q * s * Es + c * Hs)
-            wp = (c * Ep - 1j * (q * inv_nsq * s) * Hp, -1j * nsq * s * Ep + c * Hp)
-            phase = jax.lax.stop_gradient(aj) * kz
-            # the per-interface outputs serve only the absorption: when that is not used, JAX
-            # removes them from the traced program
-            return (ws, wp, S + phase), (_flux(*ws), _flux(*wp), jnp.imag(phase))
-
-        (w0s, w0p, S_all), (fs, fp, im_phase) = jax.lax.scan(jax.checkpoint(step), (v_s, v_p, jnp.zeros_like(kze)),
-                                                          (nn, dd), reverse=True)
+        (w0s, w0p, fs, fp), (S_all, im_phase) = _fields(nn, dd, k0, kz_sq.ki, kz_sq.n0, (v_s, v_p))
         # the product of the scale factors, and |the product in front of interface k|^2 from the
         # prefix sums of the attenuations (not as total minus suffix: with 1e5 nepers in a thick
         # absorber behind, that difference loses everything in float32)
@@ -393,6 +344,136 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
         A = inner - jnp.concatenate([inner[1:], last[None]], axis=0)
         out.append(_Group(r, t, _abs2(r), last, entering, A))
     return out[0], out[1]
+
+
+class _KzSq(NamedTuple):
+    """k_z^2 of a medium, formed as in `fresnel` from the incident medium's (ki, n0)."""
+
+    ki: jax.Array
+    n0: jax.Array
+
+    def __call__(self, nj):
+        return _kt_squared(self.ki, self.n0, nj)[0]
+
+
+def _rot(z):
+    """-i z, without a complex multiplication."""
+    return jax.lax.complex(jnp.imag(z), -jnp.real(z))
+
+
+def _unrot(z):
+    """i z, without a complex multiplication."""
+    return jax.lax.complex(-jnp.imag(z), jnp.real(z))
+
+
+def _rmul(x, z):
+    """x z for real x and complex z, as two real multiplications."""
+    return jax.lax.complex(x * jnp.real(z), x * jnp.imag(z))
+
+
+def _ds_dq(c, s, q, a):
+    """d s / d q (with g held constant) from c, s, q and the real a: module docstring, point 3."""
+    a2 = a * a
+    x = _rmul(a2, q)
+    small = _abs2(x) < _DS_SERIES_MAX**2
+    q_safe = jnp.where(small, 1, q)
+    inv_2q = _rmul(0.5 / _abs2(q_safe), jnp.conj(q_safe))  # 1 / (2q), one real division
+    return jnp.where(small, _rmul(a2, s) * _ds_dq_series(jnp.where(small, x, 0)), (_rmul(a, c) - s) * inv_2q)
+
+
+@jax.custom_jvp
+def _fields(nn, dd, k0, ki, n0, v):
+    """Fields at the front of the stack from the outgoing wave `v` in the exit medium, carried
+    through the inner layers (index `nn`, thickness `dd`, layer axis first) by a `lax.scan` from
+    back to front. Returns ((w0s, w0p, fluxes_s, fluxes_p), (sum of phases, Im phase per layer)):
+    the second pair carries no derivative (the scale factors, module docstring point 3).
+
+    Inside, the magnetic field is carried as ``H~ = -i H``: the characteristic matrices are then
+    ``[[c, s], [-q s, c]]`` (s) and ``[[c, (q / n^2) s], [-n^2 s, c]]`` (p), with no factor i."""
+    out, _ = _fields_scan(nn, dd, k0, ki, n0, v, False)
+    return out
+
+
+def _fields_scan(nn, dd, k0, ki, n0, v, residuals):
+    (Es, Hs), (Ep, Hp) = v
+
+    def step(carry, lay):
+        (Es, Ts, Ep, Tp), S = carry
+        nj, dj = lay
+        nsq = nj * nj
+        # k_z^2 once and stored (`materialize`): XLA otherwise recomputes it in each fused loop
+        # that reads it, contracting multiply-adds differently, and where it is near 0 (the layer
+        # at its critical angle) the copies fall on both sides of 0 and the root's branch
+        # differs between loops (tested: R = 0.22 instead of 1 in jitted float32)
+        q = _materialize_complex(_kt_squared(ki, n0, nj)[0])
+        a = k0 * dj
+        kz = _decaying_root(q)
+        phase = _rmul(a, kz)
+        c, s = _layer_cs(phase, a)
+        qs, rs, ns = q * s, (q * (1 / nsq)) * s, nsq * s
+        w2 = (c * Es + s * Ts, c * Ts - qs * Es, c * Ep + rs * Tp, c * Tp - ns * Ep)
+        fl = lambda E, T: jnp.imag(E * jnp.conj(T))
+        ys = (fl(w2[0], w2[1]), fl(w2[2], w2[3]), jnp.imag(phase))
+        if residuals:  # for the tangent scan: the field entering the layer from behind, c and s
+            ys = ys + (((Es, Ts, Ep, Tp), c, s),)
+        return (w2, S + phase), ys
+
+    init = ((Es, _rot(Hs), Ep, _rot(Hp)), jnp.zeros(jnp.shape(Es), Es.dtype))
+    (w0, S_all), ys = jax.lax.scan(step, init, (nn, dd), reverse=True)
+    out = (((w0[0], _unrot(w0[1])), (w0[2], _unrot(w0[3])), ys[0], ys[1]), (S_all, ys[2]))
+    return out, (ys[3] if residuals else None)
+
+
+@_fields.defjvp
+def _fields_jvp(primals, tangents):
+    nn, dd, k0, ki, n0, v = primals
+    dnn, ddd, dk0, dki, dn0, dv = tangents
+    out, (W_in, C, Sv) = _fields_scan(nn, dd, k0, ki, n0, v, True)
+    (dEs, dHs), (dEp, dHp) = dv
+    # the part of dq common to all layers: q = n^2 - n0^2 + ki^2 (either form of `_kt_squared`)
+    dm = 2 * (ki * dki - n0 * dn0)
+
+    def tstep(dw, lay):
+        nj, dj, dnj, ddj, w, c, s = lay
+        E1, T1, E2, T2 = w
+        dE1, dT1, dE2, dT2 = dw
+        a = k0 * dj
+        da = (k0 * ddj + dj * dk0).astype(c.dtype)
+        nsq = nj * nj
+        inv = 1 / nsq
+        q = _kt_squared(ki, n0, nj)[0]
+        gam = _ds_dq(c, s, q, a)
+        dnsq = 2 * nj * dnj
+        dq = dnsq + dm
+        qs = q * s
+        dc = -_rmul(0.5 * a, s) * dq - qs * da
+        ds = gam * dq + c * da
+        dqs = dq * s + q * ds
+        rho = q * inv
+        drs = (dq - rho * dnsq) * inv * s + rho * ds
+        dns = dnsq * s + nsq * ds
+        dw2 = (c * dE1 + s * dT1 + dc * E1 + ds * T1,
+               c * dT1 - qs * dE1 + dc * T1 - dqs * E1,
+               c * dE2 + rho * s * dT2 + dc * E2 + drs * T2,
+               c * dT2 - nsq * s * dE2 + dc * T2 - dns * E2)
+        w2 = (c * E1 + s * T1, c * T1 - qs * E1, c * E2 + rho * s * T2, c * T2 - nsq * s * E2)
+        dfl = lambda E, T, dE, dT: jnp.imag(dE * jnp.conj(T) + E * jnp.conj(dT))
+        return dw2, (dfl(w2[0], w2[1], dw2[0], dw2[1]), dfl(w2[2], w2[3], dw2[2], dw2[3]))
+
+    dv_rot = (dEs, _rot(dHs), dEp, _rot(dHp))
+    dw0, (dfs, dfp) = jax.lax.scan(jax.checkpoint(tstep), dv_rot, (nn, dd, dnn, ddd, W_in, C, Sv), reverse=True)
+    zeros = jax.tree.map(jnp.zeros_like, out[1])
+    return out, (((dw0[0], _unrot(dw0[1])), (dw0[2], _unrot(dw0[3])), dfs, dfp), zeros)
+
+
+def _layer_cs(delta, a):
+    """c = g cos(delta), s = g sin(delta) / k_z with g = exp(i delta), delta = a k_z (a real)."""
+    z = _unrot(2 * delta)
+    # stored once for the four products of the step that read c and s (XLA would otherwise
+    # recompute the argument reduction and the polynomials in each of their fused loops); c and s
+    # themselves are a few multiplications from it, cheaper to recompute than to store
+    e = _materialize_complex(_expm1_imag(jnp.real(z), jnp.imag(z)))
+    return 1 + 0.5 * e, _rmul(a, _exprel_from(e, z))
 
 
 def _materialize_complex(z):
@@ -588,7 +669,7 @@ def _stack(n, d, wavelength, cos_i, inc):
     nn = first(n)
     dd = first(d)  # inner layers only: dd[j - 1]
     k0 = 2 * jnp.pi / wavelength
-    kz_sq = lambda nj: _kt_squared(ki, n0c, nj)[0]  # k_z^2 formed as in `fresnel`
+    kz_sq = _KzSq(ki, n0c)  # k_z^2 formed as in `fresnel`
     kz_exit = decaying_sqrt(kz_sq(nn[L - 1]))
     if not inc:
         s, p = _group(ki, n0c, kz_exit, nn[L - 1], nn[1:L - 1], dd, k0, kz_sq, real_incident=True)

@@ -145,7 +145,7 @@ def test_stack_bench_section(tmp_path, monkeypatch):
     assert methods[0] == ("tmm (Python loop, per point)", "float64")
     for dt in ("float64", "float32"):
         for m in ("NumPy vectorized transfer matrices", "jaxoptics.stack (R, T; s and p)",
-                  "grad of sum(R) w.r.t. every n, k and d"):
+                  "grad of sum(R) w.r.t. every n, k and d", "grad of sum((R - R_data)^2) w.r.t. every n, k and d"):
             assert (m, dt) in methods
     fwd = {r["dtype"]: r for r in rows if r["method"].startswith("jaxoptics")}
     assert fwd["float64"]["max_abs_diff_vs_numpy"] < 1e-12
