@@ -143,6 +143,26 @@ def _materialize_jvp(primals, tangents):
 
 
 @jax.custom_jvp
+def materialize_both(x):
+    """`materialize(x)` whose derivative is materialized too: in forward mode, the tangents of an
+    expensive value with several consumers are then computed once (under `vmap` over tangent
+    directions XLA otherwise fuses their whole computation into each consumer's loop)."""
+    return _materialize_parts(x)
+
+
+def _materialize_parts(x):
+    if jnp.iscomplexobj(x):  # part by part: two real divisions instead of a complex one
+        return jax.lax.complex(materialize(jnp.real(x)), materialize(jnp.imag(x)))
+    return materialize(x)
+
+
+@materialize_both.defjvp
+def _materialize_both_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    return _materialize_parts(x), _materialize_parts(dx)
+
+
+@jax.custom_jvp
 def unpolarized(a, b):
     """`(a + b) / 2`, the unpolarized value from the s and p ones, ending in a select.
 

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._dispersion import Constant, Dispersion, Free, parameter_leaves, substitute
+from ._fresnel import materialize_both
 from ._stack import stack
 
 
@@ -211,7 +212,9 @@ def model_quantities(res, kinds, flat_out=False):
     `conj(X) / |r_s|^2` here (`exp(-i omega t)`, `N = n + ik`, and this package's `r_p` sign):
     so `N = (R_s - R_p) / (R_s + R_p)`, `C = 2 Re(X) / (R_s + R_p)`, `S = -2 Im(X) / (R_s + R_p)`,
     `Psi = atan(sqrt(R_p / R_s))`, `Delta = atan2(S, C)` (degrees in `(-180, 180]`)."""
-    Rs, Rp, X = res.R_s, res.R_p, res.rp_rs
+    # stored once (values and derivatives): every quantity reads them, and XLA would otherwise
+    # recompute the stack's last steps in each quantity's loop
+    Rs, Rp, X = materialize_both(res.R_s), materialize_both(res.R_p), materialize_both(res.rp_rs)
     tot = Rs + Rp
     out = {}
 
