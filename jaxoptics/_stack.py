@@ -333,8 +333,9 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
         # no NaN leaks into gradients.
         ok = _abs2(D) > 0
         D = jnp.where(ok, D, 1)
-        r = jnp.where(ok, r / D, 0)
-        t = jnp.where(ok, tnum * G / D, 1)
+        inv_D = _materialize_complex(jnp.conj(D) * (1 / _abs2(D)).astype(D.dtype))
+        r = jnp.where(ok, r * inv_D, 0)
+        t = jnp.where(ok, tnum * G * inv_D, 1)
         # flux through each interface, times the scale factors in front of it (module docs):
         # interfaces 0..m-1 from the scan, the first and the last also directly
         scale = norm / _abs2(D)
@@ -670,7 +671,7 @@ def _stack(n, d, wavelength, cos_i, inc):
     dd = first(d)  # inner layers only: dd[j - 1]
     k0 = 2 * jnp.pi / wavelength
     kz_sq = _KzSq(ki, n0c)  # k_z^2 formed as in `fresnel`
-    kz_exit = decaying_sqrt(kz_sq(nn[L - 1]))
+    kz_exit = _materialize_complex(decaying_sqrt(kz_sq(nn[L - 1])))
     if not inc:
         s, p = _group(ki, n0c, kz_exit, nn[L - 1], nn[1:L - 1], dd, k0, kz_sq, real_incident=True)
         return _finish(valid, s.R, p.R, s.T, p.T, list(s.A), list(p.A), (s.r, p.r, s.t, p.t), p.r * jnp.conj(s.r))
