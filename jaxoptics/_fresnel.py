@@ -158,18 +158,20 @@ def _materialize_parts(x):
 
 @materialize_both.defjvp
 def _materialize_both_jvp(primals, tangents):
-    # the tangent is divided by the primal's divisor (1 wherever x is a number): linear in the
-    # tangent, so reverse mode transposes it
     (x,), (dx,) = primals, tangents
+    return _materialize_parts(x), materialize_tangent(dx, x)
+
+
+def materialize_tangent(dx, x):
+    """A tangent `dx` of `x`, stored once like `materialize`: divided by the primal's divisor (1
+    wherever `x` is a number), so it is linear in the tangent and reverse mode transposes it."""
 
     def div(t, v):
         return t / jnp.where(jnp.isnan(v), 2, 1).astype(t.dtype)
 
     if jnp.iscomplexobj(dx):
-        dt = jax.lax.complex(div(jnp.real(dx), jnp.real(x)), div(jnp.imag(dx), jnp.imag(x)))
-    else:
-        dt = div(dx, x)
-    return _materialize_parts(x), dt
+        return jax.lax.complex(div(jnp.real(dx), jnp.real(x)), div(jnp.imag(dx), jnp.imag(x)))
+    return div(dx, x)
 
 
 @jax.custom_jvp
