@@ -99,7 +99,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _validate as V
-from ._fresnel import _abs2, _kt_squared, decaying_sqrt, materialize, sqrt_where, unpolarized
+from ._fresnel import _abs2, _kt_squared, _materialize_parts, decaying_sqrt, sqrt_where, unpolarized
 from ._result import Unpacks, result
 
 if TYPE_CHECKING:
@@ -333,7 +333,7 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
         # no NaN leaks into gradients.
         ok = _abs2(D) > 0
         D = jnp.where(ok, D, 1)
-        inv_D = _materialize_complex(jnp.conj(D) * (1 / _abs2(D)).astype(D.dtype))
+        inv_D = _materialize_parts(jnp.conj(D) * (1 / _abs2(D)).astype(D.dtype))
         r = jnp.where(ok, r * inv_D, 0)
         t = jnp.where(ok, tnum * G * inv_D, 1)
         # flux through each interface, times the scale factors in front of it (module docs):
@@ -382,6 +382,13 @@ def _ds_dq(c, s, q, a):
     return jnp.where(small, _rmul(a2, s) * _ds_dq_series(jnp.where(small, x, 0)), (_rmul(a, c) - s) * inv_2q)
 
 
+def _apply(c, s, qs, rs, ns, w):
+    """A layer's matrices applied to the fields w = (E_s, -i H_s, E_p, -i H_p): qs = q s,
+    rs = (q / n^2) s, ns = n^2 s."""
+    E1, T1, E2, T2 = w
+    return c * E1 + s * T1, c * T1 - qs * E1, c * E2 + rs * T2, c * T2 - ns * E2
+
+
 @jax.custom_jvp
 def _fields(nn, dd, k0, ki, n0, v):
     """Fields at the front of the stack from the outgoing wave `v` in the exit medium, carried
@@ -406,13 +413,12 @@ def _fields_scan(nn, dd, k0, ki, n0, v, residuals):
         # that reads it, contracting multiply-adds differently, and where it is near 0 (the layer
         # at its critical angle) the copies fall on both sides of 0 and the root's branch
         # differs between loops (tested: R = 0.22 instead of 1 in jitted float32)
-        q = _materialize_complex(_kt_squared(ki, n0, nj)[0])
+        q = _materialize_parts(_kt_squared(ki, n0, nj)[0])
         a = k0 * dj
         kz = _decaying_root(q)
         phase = _rmul(a, kz)
         c, s = _layer_cs(phase, a)
-        qs, rs, ns = q * s, (q * (1 / nsq)) * s, nsq * s
-        w2 = (c * Es + s * Ts, c * Ts - qs * Es, c * Ep + rs * Tp, c * Tp - ns * Ep)
+        w2 = _apply(c, s, q * s, (q * (1 / nsq)) * s, nsq * s, (Es, Ts, Ep, Tp))
         fl = lambda E, T: jnp.imag(E * jnp.conj(T))
         ys = (fl(w2[0], w2[1]), fl(w2[2], w2[3]), jnp.imag(phase))
         if residuals:  # for the tangent scan: the field entering the layer from behind, c and s
@@ -457,7 +463,7 @@ def _fields_jvp(primals, tangents):
                c * dT1 - qs * dE1 + dc * T1 - dqs * E1,
                c * dE2 + rho * s * dT2 + dc * E2 + drs * T2,
                c * dT2 - nsq * s * dE2 + dc * T2 - dns * E2)
-        w2 = (c * E1 + s * T1, c * T1 - qs * E1, c * E2 + rho * s * T2, c * T2 - nsq * s * E2)
+        w2 = _apply(c, s, qs, rho * s, nsq * s, w)
         dfl = lambda E, T, dE, dT: jnp.imag(dE * jnp.conj(T) + E * jnp.conj(dT))
         return dw2, (dfl(w2[0], w2[1], dw2[0], dw2[1]), dfl(w2[2], w2[3], dw2[2], dw2[3]))
 
@@ -473,13 +479,8 @@ def _layer_cs(delta, a):
     # stored once for the four products of the step that read c and s (XLA would otherwise
     # recompute the argument reduction and the polynomials in each of their fused loops); c and s
     # themselves are a few multiplications from it, cheaper to recompute than to store
-    e = _materialize_complex(_expm1_imag(jnp.real(z), jnp.imag(z)))
+    e = _materialize_parts(_expm1_imag(jnp.real(z), jnp.imag(z)))
     return 1 + 0.5 * e, _rmul(a, _exprel_from(e, z))
-
-
-def _materialize_complex(z):
-    """`materialize` of a complex value, part by part (two real divisions instead of a complex one)."""
-    return jax.lax.complex(materialize(jnp.real(z)), materialize(jnp.imag(z)))
 
 
 def _flux_norm(pol, kz0, n0sq, real_incident):
@@ -671,7 +672,7 @@ def _stack(n, d, wavelength, cos_i, inc):
     dd = first(d)  # inner layers only: dd[j - 1]
     k0 = 2 * jnp.pi / wavelength
     kz_sq = _KzSq(ki, n0c)  # k_z^2 formed as in `fresnel`
-    kz_exit = _materialize_complex(decaying_sqrt(kz_sq(nn[L - 1])))
+    kz_exit = _materialize_parts(decaying_sqrt(kz_sq(nn[L - 1])))
     if not inc:
         s, p = _group(ki, n0c, kz_exit, nn[L - 1], nn[1:L - 1], dd, k0, kz_sq, real_incident=True)
         return _finish(valid, s.R, p.R, s.T, p.T, list(s.A), list(p.A), (s.r, p.r, s.t, p.t), p.r * jnp.conj(s.r))
