@@ -403,6 +403,8 @@ def _fields(nn, dd, k0, ki, n0, v):
 
 
 def _fields_scan(nn, dd, k0, ki, n0, v, residuals):
+    """The primal scan of `_fields`: its outputs, and with `residuals` also, per layer, the field
+    entering it from behind and its entries c, s (for the tangent scan of `_fields_jvp`)."""
     (Es, Hs), (Ep, Hp) = v
 
     def step(carry, lay):
@@ -433,6 +435,9 @@ def _fields_scan(nn, dd, k0, ki, n0, v, residuals):
 
 @_fields.defjvp
 def _fields_jvp(primals, tangents):
+    """The primal scan, recording; then a scan of the tangent fields from back to front, linear in
+    the tangents: d(M w) = M dw + dM w, with dM from dq, da and d(n^2) through the closed-form
+    entry derivatives (module docstring, point 3). Reverse mode transposes only this second scan."""
     nn, dd, k0, ki, n0, v = primals
     dnn, ddd, dk0, dki, dn0, dv = tangents
     out, (W_in, C, Sv) = _fields_scan(nn, dd, k0, ki, n0, v, True)
