@@ -67,6 +67,7 @@ from ._materials import Material as Material
 from ._materials import cauchy as cauchy
 from ._materials import material_index as material_index
 from ._materials import sellmeier as sellmeier
+from ._cache import enable_cache as enable_cache
 from ._memory import keep_freed_memory as keep_freed_memory
 from ._shard import batch_mesh as batch_mesh
 from ._shard import fit_eta_sharded as fit_eta_sharded

@@ -19,37 +19,15 @@ import sys
 from pathlib import Path
 
 
-def compilation_cache_dir() -> Path | None:
-    """Where the command line keeps compiled programs between runs, or None when turned off.
-
-    `JAXOPTICS_CACHE_DIR` if set (an empty value or `off` turns the cache off), else
-    `$XDG_CACHE_HOME/jaxoptics/xla` (`~/.cache/jaxoptics/xla` by default)."""
-    import os
-
-    env = os.environ.get("JAXOPTICS_CACHE_DIR")
-    if env is not None:
-        return None if env.strip().lower() in ("", "off", "0", "none") else Path(env).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "jaxoptics" / "xla"
-
-
 def _use_compilation_cache(args) -> None:
-    """JAX's persistent compilation cache for this process: a later run of the same command
-    loads the compiled programs instead of compiling them again. Every program is cached (JAX's
-    default keeps only those that took a second or more to compile), the cache is capped at
-    1 GiB (least recently used entries are evicted), and JAX guards it with a file lock, so
-    processes can share it."""
-    import jax
-
+    """`jaxoptics.enable_cache()` for this process (JAX's persistent compilation cache and the
+    fits' traced programs, in `$JAXOPTICS_CACHE_DIR` or `~/.cache/jaxoptics/xla`), unless the
+    command was given `--no-cache` or `JAXOPTICS_CACHE_DIR=off`."""
     if getattr(args, "no_cache", False):
         return
-    path = compilation_cache_dir()
-    if path is None:
-        return
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    jax.config.update("jax_compilation_cache_max_size", 2**30)
+    from ._cache import enable_cache
+
+    enable_cache()
 
 
 def _demo(args) -> int:

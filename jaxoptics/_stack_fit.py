@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from . import _cache
 from ._compile import QUICK_COMPILE
 from ._dispersion import Free, parameter_leaves
 from ._fit_solver import _tol
@@ -243,10 +244,15 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     try:
         hash(key)
     except TypeError:  # a model holding lists or arrays: compiled for this call only
-        run = _program.__wrapped__(*key)
+        jitted, run, options = _program.__wrapped__(*key)
     else:
-        run = _program(*key)
-    x, sd, cov, corr, chi2r, conv, at_b, steps = run(V, S)
+        jitted, run, options = _program(*key)
+    if progress:  # a host callback, which `jax.export` cannot store
+        out = jitted(V, S)
+    else:
+        out = _cache.call(run, "jaxoptics._stack_fit._program", (V, S), static=key, options=options,
+                          fallback=lambda: jitted(V, S))
+    x, sd, cov, corr, chi2r, conv, at_b, steps = out
     shp = lambda a: a.reshape(batch + a.shape[1:])
     return StackFit(tuple(f.name for f in free), shp(x), shp(sd), shp(cov), shp(corr), shp(chi2r), shp(conv),
                     shp(at_b), shp(steps), sigma_given)
@@ -429,8 +435,8 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
 
     # A small fit is compiled with `QUICK_COMPILE`: on the bundled example (one spectrum, 846
     # residuals) it compiles in 5.3 s against 7.5 s, and runs in 20 ms against 6.5 ms.
-    quick = B * Q * P <= _QUICK_COMPILE_RESIDUALS
-    return jax.jit(run, compiler_options=QUICK_COMPILE if quick else None)
+    options = QUICK_COMPILE if B * Q * P <= _QUICK_COMPILE_RESIDUALS else None
+    return jax.jit(run, compiler_options=options), run, options
 
 
 def _pending_map(f, args, order, count, size, init):

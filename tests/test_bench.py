@@ -161,10 +161,10 @@ def test_latency_section(tmp_path):
 
     rows = bench_latency(repeats=1)
     cases = [r["case"] for r in rows]
-    assert len(cases) == 9 and cases[0] == "import jaxoptics"
+    assert len(cases) == 11 and cases[0] == "import jaxoptics"
     assert all(r["median_s"] > 0 for r in rows)
     table = latency_table(rows)
-    assert table.count("x |") == 4  # three CLI rows and the SciPy row carry a ratio
+    assert table.count("x |") == 4  # the three rows of fit --example and the SciPy row carry a ratio
 
 
 def test_stackfit_bench_section():

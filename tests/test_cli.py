@@ -25,14 +25,22 @@ def test_import_loads_only_what_the_kernels_need():
 
 
 def test_fit_keeps_compiled_programs_between_runs(tmp_path):
-    """A first run fills the cache directory, a second run gives the same answer from it;
-    `--no-cache` and `JAXOPTICS_CACHE_DIR=off` write nothing."""
+    """A first run fills the cache directory (compiled programs and the fit's traced program), a
+    second run gives the same answer from it without tracing the fit; `--no-cache` and
+    `JAXOPTICS_CACHE_DIR=off` write nothing."""
     cache = tmp_path / "cache"
-    first = _run(["-m", "jaxoptics", "fit", "--example"], JAXOPTICS_CACHE_DIR=str(cache)).stdout
+    fit = ["-m", "jaxoptics", "fit", "--example"]
+    first = _run(fit, JAXOPTICS_CACHE_DIR=str(cache), JAX_LOG_COMPILES="1")
     entries = sorted(p.name for p in cache.iterdir())
-    assert any(not n.endswith("-atime") and not n.startswith(".") for n in entries), entries
-    second = _run(["-m", "jaxoptics", "fit", "--example"], JAXOPTICS_CACHE_DIR=str(cache)).stdout
-    assert second == first
+    assert any(n.endswith("-cache") for n in entries), entries
+    assert any(n.endswith(".jaxexport") for n in entries), entries
+    assert "Finished tracing _first" in first.stderr
+    second = _run(fit, JAXOPTICS_CACHE_DIR=str(cache), JAX_LOG_COMPILES="1")
+    assert second.stdout == first.stdout
+    assert "Finished tracing _first" not in second.stderr
+    compiled = second.stderr.count("\nCompiling ") + second.stderr.startswith("Compiling ")
+    assert compiled == second.stderr.count("Persistent compilation cache hit"), second.stderr  # none compiled
+    first = first.stdout
     off = tmp_path / "off"
     _run(["-m", "jaxoptics", "fit", "--example", "--no-cache"], JAXOPTICS_CACHE_DIR=str(off))
     assert not off.exists()

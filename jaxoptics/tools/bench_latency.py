@@ -6,8 +6,12 @@ to the answer, each case in fresh processes, side by side in one run.
   compilation cache cold (a new, empty cache directory each repeat), warm, and turned off;
 - a plain SciPy script doing the same fit end to end: it reads the same CSV file and fits each
   curve with `scipy.optimize.least_squares` on the textbook Fresnel reflectance;
+- the layered-sample example (`fit-stack --example`) with the cache warm and turned off;
 - inside a fresh process, the first `fit_eta` call on one curve (tracing, compilation and run) and
-  the second call, with the compilation cache off and warm.
+  the second call, with the cache off and warm (`jaxoptics.enable_cache`).
+
+"Cache" is `jaxoptics.enable_cache`'s directory: JAX's persistent compilation cache and the fits'
+traced programs.
 
 Each row is the median over repeats of the wall time of a whole subprocess (or, for the `fit_eta`
 rows, of the time the process measures around the call).
@@ -52,11 +56,9 @@ import sys, time
 t0 = time.perf_counter()
 import jax
 jax.config.update("jax_enable_x64", True)
-if sys.argv[1] != "off":
-    jax.config.update("jax_compilation_cache_dir", sys.argv[1])
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 import jaxoptics as jo
+if sys.argv[1] != "off":
+    jo.enable_cache(path=sys.argv[1])
 c = jo.load_reflectance(jo.example_path()).curves()[0]
 t1 = time.perf_counter()
 jax.block_until_ready(jo.fit_eta(c.theta, c.R, polarization=c.polarization, sigma=c.sigma).eta)
@@ -107,6 +109,11 @@ def bench_latency(*, quick=False, progress=None, repeats=None) -> list[dict]:
         row("CLI fit --example, compilation cache warm", [_wall(cli, _env(JAXOPTICS_CACHE_DIR=warm_dir)) for _ in range(reps)])
         row("CLI fit --example --no-cache", [_wall(cli + ["--no-cache"]) for _ in range(reps)])
         row("SciPy script: same CSV, least_squares per curve", [_wall([py, str(script), csv_path]) for _ in range(reps)])
+        stack_cli = [py, "-m", "jaxoptics", "fit-stack", "--example"]
+        stack_dir = str(tmp / "stack")
+        _wall(stack_cli, _env(JAXOPTICS_CACHE_DIR=stack_dir))  # fills it
+        row("CLI fit-stack --example, compilation cache warm", [_wall(stack_cli, _env(JAXOPTICS_CACHE_DIR=stack_dir)) for _ in range(reps)])
+        row("CLI fit-stack --example --no-cache", [_wall(stack_cli + ["--no-cache"]) for _ in range(reps)])
         for label, cache in (("cache off", "off"), ("cache warm", str(tmp / "fitcache"))):
             if cache != "off":
                 subprocess.run([py, "-c", FIRST_CALL_SCRIPT, cache], check=True, capture_output=True)
@@ -126,7 +133,7 @@ def latency_table(rows) -> str:
     scipy = by.get("SciPy script: same CSV, least_squares per curve")
     out = ["| case | median (s) | runs (s) | vs the SciPy script |", "| --- | ---: | --- | ---: |"]
     for r in rows:
-        vs = f"{r['median_s'] / scipy:.1f}x" if scipy and r["case"].startswith(("CLI", "SciPy")) else ""
+        vs = f"{r['median_s'] / scipy:.1f}x" if scipy and r["case"].startswith(("CLI fit --", "SciPy")) else ""
         runs = ", ".join(f"{t:.2f}" for t in r["runs"])
         out.append(f"| {r['case']} | {r['median_s']:.3f} | {runs} | {vs} |")
     return "\n".join(out)

@@ -1,0 +1,291 @@
+"""Compiled programs kept between processes: `enable_cache` turns on JAX's persistent
+compilation cache and, beside it, a store of the fits' traced programs (`jax.export`).
+
+JAX's persistent compilation cache skips XLA's compilation in a later process, but every new
+process still traces and lowers the program in Python first: for the fits that is most of a warm
+run (`fit --example`: 0.8 s of tracing and 0.2 s of lowering, against 0.1 s to load the compiled
+program). The store keeps the lowered program (StableHLO, serialized by `jax.export`) under a key
+that names everything it was traced from; a later process with the same key deserializes it and
+hands it to `jit`, whose compilation the persistent cache then serves.
+
+The key is a SHA-256 of: the jaxoptics source (every `.py` file of the package, so an edited
+checkout never reuses a stale program), the versions of jax and jaxlib, the backend, the
+configuration that changes tracing (`jax_enable_x64`, the default matmul precision, the dtype
+promotion and rank promotion modes), the compiler options, the traced function's module and
+name, and a canonical text of its arguments: array leaves by shape, dtype and weak type, every
+other leaf by value. An argument without a stable text (a lambda, a local function, an object
+whose repr holds a memory address) makes the call uncacheable, and it runs as a plain `jit` call;
+so does a program `jax.export` cannot serialize (host callbacks, such as `fit_stack`'s progress
+report). A stored program that fails to load is deleted and traced again.
+
+Stored programs are files `<key>.jaxexport` in the compilation cache's directory (JAX's own
+entries end in `-cache`). They are written to a temporary name and renamed, so processes sharing
+the directory never read a partial file, and the least recently used are deleted beyond
+`MAX_BYTES`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+import hashlib
+import logging
+import os
+import pickle
+import re
+import tempfile
+import types
+from pathlib import Path
+
+import jax
+import numpy as np
+
+_log = logging.getLogger(__name__)
+
+MAX_BYTES = 256 * 2**20
+_SUFFIX = ".jaxexport"
+_dir: list[Path | None] = [None]
+
+
+def default_cache_dir() -> Path | None:
+    """The cache directory of the command line, or None when turned off: `$JAXOPTICS_CACHE_DIR`
+    if set (an empty value or `off` turns the cache off), else `$XDG_CACHE_HOME/jaxoptics/xla`
+    (`~/.cache/jaxoptics/xla` by default)."""
+    env = os.environ.get("JAXOPTICS_CACHE_DIR")
+    if env is not None:
+        return None if env.strip().lower() in ("", "off", "0", "none") else Path(env).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "jaxoptics" / "xla"
+
+
+def enable_cache(*, path: str | os.PathLike | None = None) -> Path | None:
+    """Keep compiled programs between processes, in `path` (default: `$JAXOPTICS_CACHE_DIR`, or
+    `~/.cache/jaxoptics/xla`; `JAXOPTICS_CACHE_DIR=off` leaves the cache off).
+
+    A later process that runs the same fits (same shapes and options) then neither traces nor
+    compiles them: `fit_eta` and `fit_stack` load their traced programs from the directory, and
+    JAX's persistent compilation cache, turned on here for every program of the process (JAX's
+    default keeps only those that took a second or more to compile), loads the compiled ones. The
+    directory is capped at 1 GiB of compiled programs and 256 MiB of traced ones, least recently
+    used first out; JAX guards its entries with a file lock and the traced programs are written
+    atomically, so processes can share the directory. Deleting it is always safe.
+
+    The compilation cache is a setting of the whole process (`jax.config`); call this once, at
+    the start, before anything is compiled. The command line (`python -m jaxoptics fit`,
+    `fit-stack`, `demo`) calls it unless given `--no-cache`.
+
+    **Returns:** the directory used, or None when the cache stays off.
+    """
+    path = default_cache_dir() if path is None else Path(path).expanduser()
+    if path is None:
+        return None
+    path.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    jax.config.update("jax_compilation_cache_max_size", 2**30)
+    enable_store(path)
+    return path
+
+
+def enable_store(path) -> None:
+    """Keep traced programs in `path` (created if missing) for this process, without touching the
+    compilation cache."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    _dir[0] = path
+    _in_process.clear()
+
+
+def disable_store() -> None:
+    _dir[0] = None
+    _in_process.clear()
+
+
+def enabled() -> bool:
+    return _dir[0] is not None
+
+
+class _Uncacheable(Exception):
+    pass
+
+
+_ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
+
+
+def _canon(x, traced: bool) -> str:
+    """A text that two processes give for equal values, or `_Uncacheable`. Arrays are described
+    by shape and dtype where they are `traced` (the program's inputs), by value elsewhere."""
+    canon = functools.partial(_canon, traced=traced)
+    if x is None or isinstance(x, (bool, int, float, complex, str, bytes)):
+        return repr(x)
+    if isinstance(x, (jax.Array, np.ndarray, np.generic)):
+        weak = ", weak" if getattr(x, "weak_type", False) else ""
+        if traced:
+            return f"array({x.dtype}{list(np.shape(x))}{weak})"
+        value = np.asarray(x)
+        return f"value({value.dtype}{list(value.shape)}{weak},{hashlib.sha256(value.tobytes()).hexdigest()})"
+    if isinstance(x, enum.Enum):
+        return f"{type(x).__module__}.{type(x).__qualname__}.{x.name}"
+    if isinstance(x, tuple) and hasattr(x, "_fields"):
+        return _name(type(x)) + "(" + ",".join(f"{k}={canon(v)}" for k, v in zip(x._fields, x)) + ")"
+    if isinstance(x, (tuple, list, frozenset, set)):
+        items = [canon(v) for v in x]
+        if isinstance(x, (frozenset, set)):
+            items.sort()
+        return type(x).__name__ + "(" + ",".join(items) + ")"
+    if isinstance(x, dict):
+        return "dict(" + ",".join(sorted(f"{canon(k)}:{canon(v)}" for k, v in x.items())) + ")"
+    if isinstance(x, np.dtype):
+        return f"dtype({x})"
+    if isinstance(x, type):
+        return "type:" + _name(x)
+    if dataclasses.is_dataclass(x):  # equinox modules (optimistix solvers, bound methods) too
+        fields = ",".join(f"{f.name}={canon(getattr(x, f.name))}" for f in dataclasses.fields(x))
+        return f"{_name(type(x))}({fields})"
+    if isinstance(x, functools.partial):
+        return f"partial({canon(x.func)},{canon(x.args)},{canon(x.keywords)})"
+    if isinstance(x, types.MethodType):
+        return f"method({_name(x.__func__)},{canon(x.__self__)})"
+    if isinstance(x, (types.FunctionType, types.BuiltinFunctionType)) or hasattr(x, "__wrapped__"):
+        return "fn:" + _name(x)
+    if isinstance(x, jax.tree_util.PyTreeDef):
+        return _checked(str(x))
+    raise _Uncacheable(f"no canonical text for a {type(x).__name__}")  # a repr need not show all state
+
+
+# Code whose version is part of the key (`_environment`): a function or class from anywhere else
+# (the user's own) could change between runs under the same name.
+_VERSIONED = ("jaxoptics", "optimistix", "equinox", "lineax", "jax", "jaxlib", "numpy", "builtins")
+
+
+def _name(obj) -> str:
+    module = getattr(obj, "__module__", None)
+    qualname = getattr(obj, "__qualname__", None)
+    if module is None or qualname is None or "<lambda>" in qualname or "<locals>" in qualname:
+        raise _Uncacheable(f"no stable name for {obj!r}")
+    if module.split(".")[0] not in _VERSIONED:
+        raise _Uncacheable(f"{module}.{qualname} is not versioned code")
+    return f"{module}.{qualname}"
+
+
+def _checked(text: str) -> str:
+    if _ADDRESS.search(text):
+        raise _Uncacheable(text)
+    return text
+
+
+@functools.cache
+def _environment() -> str:
+    """What a stored program depends on besides its arguments (computed once per process)."""
+    import importlib.metadata
+
+    package = Path(__file__).parent
+    h = hashlib.sha256()
+    for f in sorted(package.rglob("*.py")):
+        h.update(str(f.relative_to(package)).encode())
+        h.update(f.read_bytes())
+    versions = [importlib.metadata.version(d) for d in ("jax", "jaxlib", "optimistix", "equinox", "lineax", "numpy")]
+    return "|".join([h.hexdigest(), *versions, jax.default_backend()])
+
+
+def _key(name: str, static, args, options) -> str | None:
+    try:
+        text = _canon((name, static, options), False) + "|" + _canon(args, True)
+    except _Uncacheable as e:
+        _log.debug("not stored: %s", e)
+        return None
+    config = [str(getattr(jax.config, k)) for k in
+              ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion")]
+    return hashlib.sha256("|".join([_environment(), *config, text]).encode()).hexdigest()
+
+
+def call(fn, name: str, args: tuple, *, static=None, options=None, fallback):
+    """`fn(*args)` compiled with `options`, through the store when it is enabled and every leaf
+    of `args` is concrete; `fallback()` (the caller's own `jit` call) otherwise. `name` names `fn`
+    (its module and qualified name) and `static` is whatever else `fn` was made from: both are
+    part of the key."""
+    leaves, in_tree = jax.tree_util.tree_flatten(args)
+    if _dir[0] is None or any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return fallback()
+    key = _key(name, static, args, options)
+    if key is None:
+        return fallback()
+    if key not in _in_process:
+        path = _dir[0] / (key + _SUFFIX)
+        loaded = _load(path) or _export(fn, name, in_tree, leaves, path)
+        if loaded is None:
+            return fallback()
+        exported, out_tree = loaded
+        _in_process[key] = (jax.jit(exported.call, compiler_options=options), out_tree)
+    run, out_tree = _in_process[key]
+    return jax.tree_util.tree_unflatten(out_tree, run(*leaves))
+
+
+_in_process: dict[str, tuple] = {}
+
+
+def _load(path: Path):
+    try:
+        blob = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        data, out_tree = pickle.loads(blob)
+        exported = jax.export.deserialize(data)
+    except Exception as e:  # a damaged or foreign file: trace again
+        _log.warning("jaxoptics: dropping unreadable stored program %s (%s)", path.name, e)
+        path.unlink(missing_ok=True)
+        return None
+    os.utime(path)  # least recently used first out
+    return exported, out_tree
+
+
+def _export(fn, name, in_tree, leaves, path: Path):
+    out_tree = []
+
+    def flat(*xs):
+        out = fn(*jax.tree_util.tree_unflatten(in_tree, xs))
+        ys, tree = jax.tree_util.tree_flatten(out)
+        out_tree.append(tree)
+        return ys
+
+    flat.__name__ = flat.__qualname__ = name.rsplit(".", 1)[-1]  # the program's name in JAX's logs
+    try:
+        # Custom calls without JAX's cross-version guarantee (LAPACK's QR, ...) are allowed: a
+        # stored program is only ever loaded by the jax and jaxlib versions that wrote it (the key)
+        exported = jax.export.export(jax.jit(flat), disabled_checks=[jax.export.DisabledSafetyCheck.custom_call("ALL")])(*leaves)
+        blob = pickle.dumps((exported.serialize(), out_tree[0]))
+    except Exception as e:  # not serializable (host callbacks, ...): a plain jit call
+        _log.debug("not stored: %s", e)
+        return None
+    _write(path, blob)
+    return exported, out_tree[0]
+
+
+def _write(path: Path, blob: bytes) -> None:
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+        with os.fdopen(fd, "wb") as f:
+            f.write(blob)
+        os.replace(tmp, path)
+        _prune(path.parent)
+    except OSError as e:  # a read-only or full disk: the program still runs
+        _log.warning("jaxoptics: could not store the program (%s)", e)
+
+
+def _prune(folder: Path) -> None:
+    files = []
+    for f in folder.glob("*" + _SUFFIX):
+        try:
+            st = f.stat()
+        except OSError:
+            continue
+        files.append((st.st_mtime, st.st_size, f))
+    total = sum(s for _, s, _ in files)
+    for _, size, f in sorted(files, key=lambda t: t[0]):
+        if total <= MAX_BYTES:
+            break
+        f.unlink(missing_ok=True)
+        total -= size

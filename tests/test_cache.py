@@ -1,0 +1,138 @@
+"""The store of traced programs behind `jaxoptics.enable_cache`: a stored program gives the answer
+the plain compiled call gives, a later process loads it instead of tracing, a damaged file is
+traced again, and the key tells apart everything that changes the program (and refuses what it
+cannot name)."""
+
+import dataclasses
+import functools
+import logging
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxoptics as jo
+from jaxoptics import _cache, _stack_fit
+
+
+@pytest.fixture
+def store(tmp_path):
+    _cache.enable_store(tmp_path)
+    try:
+        yield tmp_path
+    finally:
+        _cache.disable_store()
+
+
+def _fields(result):
+    return {f.name: np.asarray(getattr(result, f.name)) for f in dataclasses.fields(result)}
+
+
+def _assert_same(a, b):
+    """The same program compiled from its stored form: equal to rounding."""
+    fa, fb = _fields(a), _fields(b)
+    assert fa.keys() == fb.keys()
+    for k in fa:
+        if fa[k].dtype.kind in "fc":
+            np.testing.assert_allclose(fb[k], fa[k], rtol=1e-12, atol=0, err_msg=k)
+        else:
+            np.testing.assert_array_equal(fb[k], fa[k], err_msg=k)
+
+
+def _fails(*args, **kwargs):
+    pytest.fail("the program was traced again instead of loaded from the store")
+
+
+def test_fit_eta_stored_loaded_and_repaired(tmp_path, monkeypatch, caplog):
+    c = jo.load_reflectance(jo.example_path()).curves()[0]
+    fit = lambda: jo.fit_eta(c.theta, c.R, polarization=c.polarization, sigma=c.sigma)
+    plain = fit()
+    _cache.enable_store(tmp_path)
+    try:
+        first = fit()  # traced, stored, compiled
+        (path,) = tmp_path.glob("*.jaxexport")
+        _cache._in_process.clear()  # as in a new process
+        with monkeypatch.context() as m:
+            m.setattr(_cache, "_export", _fails)
+            loaded = fit()
+        path.write_bytes(b"not a stored program")
+        _cache._in_process.clear()
+        with caplog.at_level(logging.WARNING, logger="jaxoptics._cache"):
+            repaired = fit()
+        assert "unreadable stored program" in caplog.text
+        assert path.read_bytes() != b"not a stored program"
+    finally:
+        _cache.disable_store()
+    for r in (first, loaded, repaired):
+        _assert_same(plain, r)
+    assert np.asarray(plain.converged).all()
+
+
+def test_fit_stack_stored_and_loaded(store, monkeypatch):
+    wl = np.linspace(400.0, 900.0, 60)
+    truth = jo.Sample([jo.Layer(1.46, 250.0)], jo.material("Si")).fixed()
+    q = np.asarray(truth.quantities(("psi_deg", "delta_deg"), jnp.asarray(wl), jnp.full(60, np.radians(70.0))))
+    sp = jo.make_spectra(wl, 70.0, {"psi_deg": q[0], "delta_deg": q[1]})
+    model = jo.Sample([jo.Layer(1.46, jo.Free(100.0, 0.0, 600.0), name="film")], jo.material("Si"))
+    first = jo.fit_stack(model, sp)
+    assert len(list(store.glob("*.jaxexport"))) == 1
+    _cache._in_process.clear()
+    _stack_fit._program.cache_clear()  # nothing of the first call stays in memory
+    with monkeypatch.context() as m:
+        m.setattr(_cache, "_export", _fails)
+        loaded = jo.fit_stack(model, sp)
+    _cache.disable_store()
+    plain = jo.fit_stack(model, sp)
+    _assert_same(plain, first)
+    _assert_same(plain, loaded)
+    assert float(plain["film.thickness_nm"]) == pytest.approx(250.0, abs=1e-6)
+
+
+def _user_function(x):
+    return x
+
+
+def test_key_tells_apart_what_changes_the_program():
+    key = lambda static, args=(): _cache._key("jaxoptics.f", static, args, None)
+    x32 = jnp.zeros(3, jnp.float32)
+    # static values by value (arrays too), traced arrays by shape and dtype only
+    assert key((1.0, "s")) == key((1.0, "s"))
+    assert key((1.0, "s")) != key((1.0 + 1e-15, "s")) != key((1.0, "p"))
+    assert key(np.array([1.0, 2.0])) == key(np.array([1.0, 2.0])) != key(np.array([1.0, 3.0]))
+    assert key(None, (x32,)) == key(None, (x32 + 1,))
+    assert key(None, (x32,)) != key(None, (jnp.zeros(4, jnp.float32),)) != key(None, (jnp.zeros(3, jnp.float64),))
+    assert key(None, (x32,)) != key(None, ({"a": x32},))
+    assert key(jo.Cauchy(1.45, 0.004)) != key(jo.Cauchy(1.45, 0.005))
+    assert key(functools.partial(jnp.sum, axis=0)) != key(functools.partial(jnp.sum, axis=1))
+    assert _cache._key("jaxoptics.f", None, (), None) != _cache._key("jaxoptics.g", None, (), None)
+    assert _cache._key("jaxoptics.f", None, (), None) != _cache._key("jaxoptics.f", None, (), {"xla_backend_optimization_level": 0})
+    default = key(None, (x32,))
+    with jax.numpy_rank_promotion("warn"):
+        assert key(None, (x32,)) != default
+    # what has no stable text is not stored: lambdas, local and user functions, opaque objects
+    for unstable in (lambda x: x, _user_function, object(), (1.0, object())):
+        assert key(unstable) is None, unstable
+
+    def local(x):
+        return x
+
+    assert key(local) is None
+
+
+def test_store_is_off_unless_enabled(tmp_path):
+    assert not _cache.enabled()
+    c = jo.load_reflectance(jo.example_path()).curves()[0]
+    jo.fit_eta(c.theta, c.R, polarization=c.polarization, sigma=c.sigma)
+    assert not list(tmp_path.iterdir())
+
+
+def test_prune_keeps_the_most_recently_used(tmp_path, monkeypatch):
+    monkeypatch.setattr(_cache, "MAX_BYTES", 2500)
+    for k in range(5):
+        p = tmp_path / f"{k}{_cache._SUFFIX}"
+        p.write_bytes(bytes(1000))
+        os.utime(p, (1000 + k, 1000 + k))
+    _cache._prune(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"{k}{_cache._SUFFIX}" for k in (3, 4)]
