@@ -135,10 +135,11 @@ def _absorbing_restart(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
 
 
 # Fits over at most this many points (curves x angles) are compiled with `QUICK_COMPILE`, where
-# compiling is most of the time a fit takes. Measured on the bundled example's angles (33), one
-# program of the batched solve: 0.9-1.4 s to compile against 1.3-1.9 s, and run time 0.3 against
-# 0.25 ms for 1 or 2 curves, 4.6 against 0.7 ms for 100; for 1000 curves (3 against 9 ms) a
-# repeated call would lose what the first one gains.
+# compiling is most of the time a fit takes. Measured on the bundled example (two curves of 33
+# angles), `QUICK_COMPILE` against `FAST_CODEGEN` alone: first call 1.6 against 2.2 s, later calls
+# 1.2 against 1.1 ms. (With XLA's default emitters, one program of the batched solve ran in 4.6
+# against 0.7 ms for 100 curves; for 1000 curves, 3 against 9 ms, a repeated call would lose what
+# the first one gains.)
 _QUICK_COMPILE_POINTS = 4096
 
 

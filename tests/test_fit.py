@@ -318,8 +318,12 @@ def test_curves_in_different_polarizations_fit_in_one_call():
         for a in range(truth.shape[0]):
             for b, p in enumerate(pols):
                 one = _fit_eta(th, R[a, b], eta1=eta1, polarization=p, absorbing=absorbing)  # (eager only)
-                np.testing.assert_allclose(complex(r.eta[a, b]), complex(one.eta), rtol=1e-12)
-                np.testing.assert_allclose(complex(r.stderr[a, b]), complex(one.stderr), rtol=1e-9)
+                # Two programs (six curves, one curve), whose roundings may differ: Gauss-Newton (real
+                # index) converges quadratically past its step tolerance (1e-9, `_tol`), to rounding;
+                # Levenberg-Marquardt (complex) stops within it.
+                rtol = 1e-8 if absorbing else 1e-12
+                np.testing.assert_allclose(complex(r.eta[a, b]), complex(one.eta), rtol=rtol)
+                np.testing.assert_allclose(complex(r.stderr[a, b]), complex(one.stderr), rtol=max(rtol, 1e-9))
                 np.testing.assert_array_equal(np.asarray(r.eta_alt[a, b]), np.asarray(one.eta_alt))
     R = np.asarray(jo.synthetic_reflectance(None, jnp.array([1.5, 1.6]), THETA))
     with pytest.raises(ValueError, match=r"polarization\[1\] must be one of"):
