@@ -30,6 +30,7 @@ import dataclasses
 import enum
 import functools
 import hashlib
+import io
 import logging
 import os
 import pickle
@@ -232,14 +233,30 @@ def _load(path: Path):
     except OSError:
         return None
     try:
-        data, out_tree = pickle.loads(blob)
+        data, out_tree = _Unpickler(io.BytesIO(blob)).load()
         exported = jax.export.deserialize(data)
     except Exception as e:  # a damaged or foreign file: trace again
         _log.warning("jaxoptics: dropping unreadable stored program %s (%s)", path.name, e)
         path.unlink(missing_ok=True)
         return None
-    os.utime(path)  # least recently used first out
+    try:
+        os.utime(path)  # least recently used first out
+    except OSError:  # pruned by another process meanwhile
+        pass
     return exported, out_tree
+
+
+class _Unpickler(pickle.Unpickler):
+    """Unpickles only what a stored file holds: bytes and the output's tree structure (JAX's
+    `PyTreeDef`, its registry and jaxoptics' result classes), nothing a planted file could run."""
+
+    def find_class(self, module, name):
+        root = module.split(".")[0]
+        if (root in ("jax", "jaxlib") and name in ("PyTreeDef", "default_registry")) or root == "jaxoptics":
+            obj = super().find_class(module, name)
+            if root != "jaxoptics" or isinstance(obj, type):
+                return obj
+        raise pickle.UnpicklingError(f"{module}.{name} is not part of a stored program")
 
 
 def _export(fn, name, in_tree, leaves, path: Path):
@@ -256,7 +273,7 @@ def _export(fn, name, in_tree, leaves, path: Path):
         # Custom calls without JAX's cross-version guarantee (LAPACK's QR, ...) are allowed: a
         # stored program is only ever loaded by the jax and jaxlib versions that wrote it (the key)
         exported = jax.export.export(jax.jit(flat), disabled_checks=[jax.export.DisabledSafetyCheck.custom_call("ALL")])(*leaves)
-        blob = pickle.dumps((exported.serialize(), out_tree[0]))
+        blob = pickle.dumps((bytes(exported.serialize()), out_tree[0]))
     except Exception as e:  # not serializable (host callbacks, ...): a plain jit call
         _log.debug("not stored: %s", e)
         return None
@@ -265,6 +282,7 @@ def _export(fn, name, in_tree, leaves, path: Path):
 
 
 def _write(path: Path, blob: bytes) -> None:
+    tmp = None
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
         with os.fdopen(fd, "wb") as f:
@@ -273,6 +291,8 @@ def _write(path: Path, blob: bytes) -> None:
         _prune(path.parent)
     except OSError as e:  # a read-only or full disk: the program still runs
         _log.warning("jaxoptics: could not store the program (%s)", e)
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
 
 
 def _prune(folder: Path) -> None:

@@ -151,3 +151,21 @@ def test_compiler_options_xla_does_not_know_are_left_out(monkeypatch):
         assert options == {k: v for k, v in wanted.items() if _compile._known(((k, v),))}
         assert "xla_no_such_option_for_jaxoptics" not in options
     assert _compile.compiler_options(True)["xla_backend_optimization_level"] == 0
+
+
+class _Planted:
+    def __reduce__(self):
+        return (os.system, ("echo planted",))
+
+
+def test_a_planted_file_runs_nothing(tmp_path, caplog):
+    """A stored file is unpickled with only JAX's tree structure and jaxoptics' result classes
+    allowed: a file that would call anything else is refused (and deleted) before it runs."""
+    import pickle
+
+    path = tmp_path / ("0" * 64 + _cache._SUFFIX)
+    path.write_bytes(pickle.dumps((b"", _Planted())))
+    with caplog.at_level(logging.WARNING, logger="jaxoptics._cache"):
+        assert _cache._load(path) is None
+    assert "is not part of a stored program" in caplog.text
+    assert not path.exists()

@@ -3,7 +3,7 @@ to the answer, each case in fresh processes, side by side in one run.
 
 - `import jaxoptics`;
 - the main job of the README without the plot (`python -m jaxoptics fit --example`), with the
-  compilation cache cold (a new, empty cache directory each repeat), warm, and turned off;
+  cache cold (a new, empty cache directory each repeat), warm, and turned off;
 - a plain SciPy script doing the same fit end to end: it reads the same CSV file and fits each
   curve with `scipy.optimize.least_squares` on the textbook Fresnel reflectance;
 - the layered-sample example (`fit-stack --example`) with the cache warm and turned off;
@@ -103,16 +103,16 @@ def bench_latency(*, quick=False, progress=None, repeats=None) -> list[dict]:
         cold = []
         for k in range(reps):
             cold.append(_wall(cli, _env(JAXOPTICS_CACHE_DIR=str(tmp / f"cold{k}"))))
-        row("CLI fit --example, compilation cache cold (empty)", cold)
+        row("CLI fit --example, cache cold (empty)", cold)
         warm_dir = str(tmp / "warm")
         _wall(cli, _env(JAXOPTICS_CACHE_DIR=warm_dir))  # fills it
-        row("CLI fit --example, compilation cache warm", [_wall(cli, _env(JAXOPTICS_CACHE_DIR=warm_dir)) for _ in range(reps)])
+        row("CLI fit --example, cache warm", [_wall(cli, _env(JAXOPTICS_CACHE_DIR=warm_dir)) for _ in range(reps)])
         row("CLI fit --example --no-cache", [_wall(cli + ["--no-cache"]) for _ in range(reps)])
         row("SciPy script: same CSV, least_squares per curve", [_wall([py, str(script), csv_path]) for _ in range(reps)])
         stack_cli = [py, "-m", "jaxoptics", "fit-stack", "--example"]
         stack_dir = str(tmp / "stack")
         _wall(stack_cli, _env(JAXOPTICS_CACHE_DIR=stack_dir))  # fills it
-        row("CLI fit-stack --example, compilation cache warm", [_wall(stack_cli, _env(JAXOPTICS_CACHE_DIR=stack_dir)) for _ in range(reps)])
+        row("CLI fit-stack --example, cache warm", [_wall(stack_cli, _env(JAXOPTICS_CACHE_DIR=stack_dir)) for _ in range(reps)])
         row("CLI fit-stack --example --no-cache", [_wall(stack_cli + ["--no-cache"]) for _ in range(reps)])
         for label, cache in (("cache off", "off"), ("cache warm", str(tmp / "fitcache"))):
             if cache != "off":
