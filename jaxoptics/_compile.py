@@ -1,15 +1,17 @@
 """The compiler options of the programs the fits compile, and `filter_jit` with them.
 
-`FAST_CODEGEN` has XLA's CPU backend emit its loop fusions with its LLVM IR emitters rather than
-its (default) MLIR fusion emitters: the fits then compile in a third to a half less time and run
-as fast. Measured side by side (float64, fresh processes): a one-curve `fit_eta` program 1.04 ->
-0.43 s to compile; `fit_eta` on 10^4 curves, first call 2.77 -> 2.14 s, then 35.9 against 35.0 ms;
-`fit_stack` on 1000 spectra, first call 17.0 -> 12.7 s, then 2.27 against 2.31 s; the same
-estimates. An XLA that no longer knows the option compiles without it (`compiler_options`).
+`QUICK_COMPILE`, for small fits (one curve, one spectrum: the fits choose it by the size of the
+problem, `_fit_followups`, `_stack_fit`), where compiling is most of the time a fit takes:
 
-`QUICK_COMPILE` also turns XLA's backend (LLVM) optimizations off. A small fit (one curve, one
-spectrum) then compiles in about a third less time, and its solve runs a few milliseconds slower
-at most; the fits choose it by the size of the problem (`_fit_followups`, `_stack_fit`).
+- XLA's backend (LLVM) optimizations off: about a third less compile time, and a solve a few
+  milliseconds slower at most;
+- loops emitted by XLA's LLVM IR emitters rather than its (default) MLIR fusion emitters: a
+  one-curve `fit_eta` program compiles in 0.43 s against 1.04 s, the bundled `fit-stack` example's
+  first call takes 7.1 s against 8.8 s, with the same estimates (measured side by side, float64).
+
+Large batches keep XLA's defaults, whose run time matters more: with the IR emitters, 3000
+complex (`absorbing=True`) fits compiled in 6.3 s against 8.0 s but ran in 0.96 s against 0.67 s.
+An XLA that does not know an option compiles without it (`compiler_options`).
 """
 
 from __future__ import annotations
@@ -22,13 +24,14 @@ import numpy as np
 
 from . import _cache
 
-FAST_CODEGEN = {"xla_cpu_use_fusion_emitters": False}
-QUICK_COMPILE = {**FAST_CODEGEN, "xla_backend_optimization_level": 0}
+QUICK_COMPILE = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 
 
-def compiler_options(quick: bool) -> dict:
-    """`QUICK_COMPILE` or `FAST_CODEGEN`, without the options this XLA does not know."""
-    wanted = tuple((QUICK_COMPILE if quick else FAST_CODEGEN).items())
+def compiler_options(quick: bool) -> dict | None:
+    """`QUICK_COMPILE` without the options this XLA does not know, or None (XLA's defaults)."""
+    if not quick:
+        return None
+    wanted = tuple(QUICK_COMPILE.items())
     return dict(wanted) if _known(wanted) else {k: v for k, v in wanted if _known(((k, v),))}
 
 

@@ -136,10 +136,10 @@ def _absorbing_restart(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
 
 # Fits over at most this many points (curves x angles) are compiled with `QUICK_COMPILE`, where
 # compiling is most of the time a fit takes. Measured on the bundled example (two curves of 33
-# angles), `QUICK_COMPILE` against `FAST_CODEGEN` alone: first call 1.6 against 2.2 s, later calls
-# 1.2 against 1.1 ms. (With XLA's default emitters, one program of the batched solve ran in 4.6
-# against 0.7 ms for 100 curves; for 1000 curves, 3 against 9 ms, a repeated call would lose what
-# the first one gains.)
+# angles), against XLA's defaults: first call 1.6-1.9 s against 2.7 s, later calls 1.2 against
+# 1.1 ms. (For 100 curves, one program of the batched solve ran in 4.6 against 0.7 ms with the
+# LLVM optimizations off; for 1000 curves, 3 against 9 ms, a repeated call would lose what the
+# first one gains.)
 _QUICK_COMPILE_POINTS = 4096
 
 

@@ -65,7 +65,7 @@ _GN_STEPS = 20
 _GN_LANES = 64
 _LM_LANES = 8
 # Fits of at most this many residuals (spectra x data points) are compiled with `QUICK_COMPILE`:
-# about 12 ms more run time per spectrum than the optimized program, for 2.5 s less compile time.
+# 12-20 ms more run time per spectrum than the optimized program, for 3-4 s less compile time.
 _QUICK_COMPILE_RESIDUALS = 2**14
 # Spectra per block of the other batched passes (grid costs, chi^2, standard errors): a lax.map
 # over blocks bounds the memory of a map of any size.
@@ -434,8 +434,8 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         return x, sd, cov, corr, chi2r, conv, at_b, steps
 
     # A small fit is compiled with `QUICK_COMPILE`: on the bundled example (one spectrum, 846
-    # residuals) the first call takes 6.9 s against 9.4-9.9 s with `FAST_CODEGEN` alone, and a
-    # later one 21-22 ms against 9.4 ms.
+    # residuals) the first call takes 6.9-8.4 s against 11.7 s with XLA's defaults, and a later
+    # one 21-30 ms against 9.0 ms.
     options = compiler_options(B * Q * P <= _QUICK_COMPILE_RESIDUALS)
     return jax.jit(run, compiler_options=options), run, options
 

@@ -142,15 +142,13 @@ def test_compiler_options_xla_does_not_know_are_left_out(monkeypatch):
     from jaxoptics import _compile
 
     bogus = {"xla_no_such_option_for_jaxoptics": True}
-    monkeypatch.setattr(_compile, "FAST_CODEGEN", {**_compile.FAST_CODEGEN, **bogus})
     monkeypatch.setattr(_compile, "QUICK_COMPILE", {**_compile.QUICK_COMPILE, **bogus})
     assert not _compile._known(tuple(bogus.items()))
     assert _compile._known((("xla_backend_optimization_level", 0),))
-    for quick, wanted in ((False, _compile.FAST_CODEGEN), (True, _compile.QUICK_COMPILE)):
-        options = _compile.compiler_options(quick)
-        assert options == {k: v for k, v in wanted.items() if _compile._known(((k, v),))}
-        assert "xla_no_such_option_for_jaxoptics" not in options
-    assert _compile.compiler_options(True)["xla_backend_optimization_level"] == 0
+    options = _compile.compiler_options(True)
+    assert options == {k: v for k, v in _compile.QUICK_COMPILE.items() if _compile._known(((k, v),))}
+    assert "xla_no_such_option_for_jaxoptics" not in options and options["xla_backend_optimization_level"] == 0
+    assert _compile.compiler_options(False) is None
 
 
 class _Planted:
