@@ -197,9 +197,14 @@ def _key(name: str, static, args, options) -> str | None:
     except _Uncacheable as e:
         _log.debug("not stored: %s", e)
         return None
+    try:
+        environment = _environment()
+    except Exception as e:  # e.g. a library without its package metadata: nothing is stored
+        _log.debug("not stored: %s", e)
+        return None
     config = [str(getattr(jax.config, k)) for k in
               ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion")]
-    return hashlib.sha256("|".join([_environment(), *config, text]).encode()).hexdigest()
+    return hashlib.sha256("|".join([environment, *config, text]).encode()).hexdigest()
 
 
 def call(fn, name: str, args: tuple, *, static=None, options=None, fallback):
