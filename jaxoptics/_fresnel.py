@@ -303,10 +303,15 @@ class _Terms(NamedTuple):
     valid: jnp.ndarray
 
 
-def _terms(cos_i, eta1, eta2, sin_sq=None, q_given=None) -> _Terms:
+def _terms(cos_i, eta1, eta2, sin_sq=None, q_given=None, *, own_jvp=False) -> _Terms:
     """Shared intermediates; `eta2` real (fast real path) or complex. `sin_sq`, if given, is
-    sin^2 of the angle of incidence from a cross product (see `_kt_squared`)."""
-    c = _abs_cos(cos_i)
+    sin^2 of the angle of incidence from a cross product (see `_kt_squared`).
+
+    `own_jvp`: the caller has a derivative rule of its own (`_sp_rt_real`, `_fresnel_real`) and
+    does not differentiate these values, so `|cos_i|` and `k_t` need no guards for autodiff:
+    `abs` for `_abs_cos` and a plain square root of `max(k_t^2, 0)` for `sqrt_where` (the same
+    values, three fewer vector instructions per element)."""
+    c = jnp.abs(cos_i) if own_jvp else _abs_cos(cos_i)
     if jnp.iscomplexobj(eta2):
         valid = _positive_finite(eta1) & _valid_index(eta2) & (c < jnp.inf)
         # Explicit casts: the complex path is complex throughout (no implicit real/complex mixing,
@@ -321,7 +326,9 @@ def _terms(cos_i, eta1, eta2, sin_sq=None, q_given=None) -> _Terms:
         tir = jnp.zeros(jnp.shape(q), bool)
     else:
         tir = q < 0
-        kt = sqrt_where(q, q > 0)  # k_t = 0 under TIR and at the critical angle
+        # k_t = 0 under TIR and at the critical angle
+        # (the square root through `_one_reader`: it has many readers, see there)
+        kt = _one_reader(jnp.sqrt(jnp.where(q > 0, q, 0))) if own_jvp else sqrt_where(q, q > 0)
     den_s = ki + kt
     den_p = eta2 * eta2 * ki + eta1 * eta1 * kt
     # Both denominators vanish together only at grazing incidence with eta1 == eta2 (0/0: no
@@ -415,8 +422,86 @@ def _power_pair(t: _Terms, refl, trans):
     return R, T
 
 
+def _one_reader(q):
+    """`q` unchanged (a `reduce_precision` to the dtype's own exponent and mantissa, which XLA keeps
+    and emits as no instruction), so that an expensive value read by several operations has
+    exactly one reader. XLA on the CPU does not duplicate a division or a square root into the
+    loops of several readers, and its greedy fusion then leaves such a value outside the loop: it
+    gets a loop of its own and goes through memory, often with much of what it is computed from
+    (checked on the compiled HLO; `tests/test_bench.py` pins one loop per kernel)."""
+    fi = jnp.finfo(q.dtype)
+    return jax.lax.reduce_precision(q, exponent_bits=fi.nexp, mantissa_bits=fi.nmant)
+
+
+_HALF_SQRT2 = 0.7071067811865476  # |r| <= 1/sqrt(2): R <= 1/2
+
+
+def _quotients_real(t: _Terms, eta1, eta2):
+    """One quotient per polarization for a real eta2, and which quantity it is.
+
+    The values of `_r_amplitudes` and `_power_pair` (each polarization takes the smaller of R and
+    T directly and the larger as one minus it; R from the rationalized or the direct amplitude),
+    but the form is chosen *before* dividing: numerator and denominator are selected, and the one
+    quotient `q` is the amplitude where `small` (`R = q**2`, `T = 1 - q**2`) and the
+    transmittance elsewhere (`T = q`, `R = 1 - q`):
+
+        s:  q = -diff / D_s**2 (= r_s)          where R_s <= 1/2,
+            q = 4 k_i k_t / D_s**2 (= T_s)      elsewhere;
+        p:  q = diff x / (D_s D_p) (= r_p)      where 3 |num| <= D_p (rationalized),
+            q = num / D_p (= r_p)               where R_p <= 1/2 otherwise (direct),
+            q = 4 k_i k_t (eta1 eta2)**2 / D_p**2 (= T_p)  elsewhere.
+
+    The choices are tested on division-free equivalents (`|diff| <= D_s**2 / sqrt(2)` for
+    `R_s <= 1/2`), so the loop has two divisions and one square root, as the textbook formula
+    has; divided form by form it had five, and a division is the slowest vector instruction here.
+    Under TIR `k_t = 0`, so both quotients are transmittances equal to 0: `R = 1` and `T = 0`
+    exactly, with no select on the TIR mask.
+    """
+    e1, e2, ki, kt, ds, dp, diff = t.e1, t.e2, t.ki, t.kt, t.den_s, t.den_p, t.diff
+    kk4 = 4 * ki * kt
+    ds2 = ds * ds
+    small_s = jnp.abs(diff) <= _HALF_SQRT2 * ds2
+    q_s = _one_reader(jnp.where(small_s, -diff, kk4) / ds2)
+    # r_p's rationalized numerator x (see `_r_amplitudes`) and the direct one
+    x = jnp.where(diff >= 0, ki * ds - e1 * e1, ki * kt + t.m)
+    num = e2 * e2 * ki - e1 * e1 * kt
+    rational = 3 * jnp.abs(num) <= dp
+    small_p = rational | (jnp.abs(num) <= _HALF_SQRT2 * dp)
+    n_p = jnp.where(rational, diff * x, jnp.where(small_p, num, kk4 * (eta1 * eta2) ** 2))
+    d_p = jnp.where(rational, ds * dp, jnp.where(small_p, dp, dp * dp))
+    q_p = _one_reader(n_p / d_p)
+    return small_s, q_s, small_p, q_p
+
+
+def _reflectance(small, q):
+    return jnp.where(small, q * q, 1 - q)
+
+
+def _at_grazing(t: _Terms):
+    """R where the denominators vanish (`not t.ok`: grazing incidence, where k_i^2 and k_t^2 are
+    below the smallest normal number): 1 under TIR, 0 where eta1 == eta2 (no interface). There
+    k_t^2 = diff + k_i^2 has the sign of diff, so this is `diff < 0`, which costs nothing per
+    element when the indices are scalars (the TIR mask would be a comparison per element)."""
+    return (t.diff < 0).astype(t.ki.dtype)
+
+
+def _powers_real(t: _Terms, eta1, eta2):
+    """(R_s, R_p, T_s, T_p) for a real eta2 (no NaN mask), from `_quotients_real`."""
+    small_s, q_s, small_p, q_p = _quotients_real(t, eta1, eta2)
+    R0 = _at_grazing(t)
+
+    def pair(small, q):
+        T = jnp.where(small, 1 - q * q, q)
+        return jnp.where(t.ok, _reflectance(small, q), R0), jnp.where(t.ok, T, 1 - R0)
+
+    (R_s, T_s), (R_p, T_p) = pair(small_s, q_s), pair(small_p, q_p)
+    return R_s, R_p, T_s, T_p
+
+
 def _powers(t: _Terms, eta1, eta2):
     """(R_s, R_p, T_s, T_p) from the shared intermediates, for real or complex eta2 (no NaN mask)."""
+    if not jnp.iscomplexobj(t.kt):
+        return _powers_real(t, eta1, eta2)
     r_s, r_p = _r_amplitudes(t)
     if jnp.iscomplexobj(t.kt):
         # Power entering medium 2 (Poynting flux just past the interface), equal to 1 - R.
@@ -441,7 +526,8 @@ def _sp_rt(cos_i, eta1, eta2):
 
 
 def _q_real(cos_i, eta1, eta2):
-    return _kt_squared(eta1 * _abs_cos(cos_i), eta1, eta2)[0]
+    # the `|cos_i|` of `_terms(..., own_jvp=True)` (one instruction; its derivative is not used)
+    return _kt_squared(eta1 * jnp.abs(cos_i), eta1, eta2)[0]
 
 
 @jax.custom_jvp
@@ -449,8 +535,29 @@ def _sp_rt_real(cos_i, eta1, eta2, q):
     # q = k_t^2, computed by `_q_real` from the same inputs (passed in so that `_rt_two_loops` can
     # compute it once for two loops); it is not differentiated separately (the rule below covers
     # the whole dependence on cos_i, eta1 and eta2).
-    t = _terms(cos_i, eta1, eta2, q_given=q)
+    t = _terms(cos_i, eta1, eta2, q_given=q, own_jvp=True)
     return _nan_where_invalid(t.valid, *_powers(t, eta1, eta2))
+
+
+@jax.custom_jvp
+def _fresnel_real(cos_i, eta1, eta2, q):
+    """`fresnel` for a real eta2: `(R_s + R_p) / 2` from `_quotients_real`, with the grazing and
+    invalid-element selects applied once to the sum instead of to each polarization. It ends in a
+    select, as `unpolarized` does and for the same reason (a reduction that consumes it does not
+    cut its loop)."""
+    t = _terms(cos_i, eta1, eta2, q_given=q, own_jvp=True)
+    small_s, q_s, small_p, q_p = _quotients_real(t, eta1, eta2)
+    R = jnp.where(t.ok, 0.5 * (_reflectance(small_s, q_s) + _reflectance(small_p, q_p)), _at_grazing(t))
+    return jnp.where(t.valid, R, jnp.nan)
+
+
+def _fresnel_real_jvp(primals, tangents):
+    t = _terms(*primals[:3], q_given=primals[3], own_jvp=True)
+    dR_s, dR_p = _real_tangents(t, primals[0], tangents[:3])
+    return _fresnel_real(*primals), 0.5 * (dR_s + dR_p)
+
+
+_fresnel_real.defjvp(_fresnel_real_jvp, symbolic_zeros=True)
 
 
 def _own_loop(*xs, order=0):
@@ -465,7 +572,7 @@ def _own_loop(*xs, order=0):
 
 
 def _rt_two_loops(cos_i, eta1, eta2):
-    """(R_s, R_p, T_s, T_p), real eta2, as two fused loops instead of about ten.
+    """Unpolarized (R, T), real eta2, as two fused loops instead of about ten (R is `fresnel`'s).
 
     XLA on the CPU has no multi-output loop fusion: the quotients that both R and T need are
     otherwise each written to memory and read back (measured: `fresnel_rt` 12 ns/element against
@@ -482,9 +589,8 @@ def _rt_two_loops(cos_i, eta1, eta2):
     them before fusion; what they do is keep the two loops' copies apart.)
     """
     q = jax.lax.optimization_barrier(_q_real(cos_i, eta1, eta2))
-    R_s, R_p, _, _ = _sp_rt_real(cos_i, eta1, eta2, q)
     _, _, T_s, T_p = _sp_rt_real(*_own_loop(cos_i, eta1, eta2, q))
-    return R_s, R_p, T_s, T_p
+    return _fresnel_real(cos_i, eta1, eta2, q), unpolarized(T_s, T_p)
 
 
 def _sp_rt_real_jvp(primals, tangents):
@@ -508,8 +614,17 @@ def _sp_rt_real_jvp(primals, tangents):
     multiplying the tangents, so the transposed (reverse-mode) map has no 0 * inf either.
     """
     cos_i, eta1, eta2, q = primals
-    t = _terms(cos_i, eta1, eta2, q_given=q)
+    t = _terms(cos_i, eta1, eta2, q_given=q, own_jvp=True)
     out = _nan_where_invalid(t.valid, *_powers(t, eta1, eta2))
+    dR_s, dR_p = _real_tangents(t, cos_i, tangents[:3])
+    return out, (dR_s, dR_p, -dR_s, -dR_p)
+
+
+_sp_rt_real.defjvp(_sp_rt_real_jvp, symbolic_zeros=True)
+
+
+def _real_tangents(t: _Terms, cos_i, tangents):
+    """(dR_s, dR_p) from the tangents of (cos_i, eta1, eta2) (see `_sp_rt_real_jvp`)."""
     r_s, r_p = _r_amplitudes(t)
     live = t.ok & t.valid & ~t.tir & (t.kt > 0)
     e1, e2, c, ki, m, diff = t.e1, t.e2, t.c, t.ki, t.m, t.diff
@@ -532,11 +647,7 @@ def _sp_rt_real_jvp(primals, tangents):
             acc = acc + a * (sign * d if k == 0 else d)
         return acc
 
-    dR_s, dR_p = apply(coef_s), apply(coef_p)
-    return out, (dR_s, dR_p, -dR_s, -dR_p)
-
-
-_sp_rt_real.defjvp(_sp_rt_real_jvp, symbolic_zeros=True)
+    return apply(coef_s), apply(coef_p)
 
 
 def fresnel(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],
@@ -564,6 +675,8 @@ def fresnel(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"]
     Reference: Hecht, *Optics*, eqs. 4.34, 4.40; de Greve (2006), eqs. 25-27.
     """
     cos_i, eta1, eta2 = _prepare(cos_i, eta1, eta2, allow_complex=True)
+    if not jnp.iscomplexobj(eta2):
+        return _fresnel_real(cos_i, eta1, eta2, _q_real(cos_i, eta1, eta2))
     R_s, R_p, _, _ = _sp_rt(cos_i, eta1, eta2)
     return unpolarized(R_s, R_p)
 
@@ -602,9 +715,8 @@ def fresnel_rt(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batc
     cos_i, eta1, eta2 = _prepare(cos_i, eta1, eta2, allow_complex=True)
     if jnp.iscomplexobj(eta2):
         R_s, R_p, T_s, T_p = _sp_rt(cos_i, eta1, eta2)
-    else:
-        R_s, R_p, T_s, T_p = _rt_two_loops(cos_i, eta1, eta2)
-    return unpolarized(R_s, R_p), unpolarized(T_s, T_p)
+        return unpolarized(R_s, R_p), unpolarized(T_s, T_p)
+    return _rt_two_loops(cos_i, eta1, eta2)
 
 
 def fresnel_amplitudes(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],

@@ -81,6 +81,35 @@ def test_single_output_kernels_compile_to_one_loop():
     assert _fusions(jax.jit(lambda c: jnp.sum(jo.fresnel_amplitudes(c, 1.5, 1.0).R)).lower(big).compile()) <= 5
 
 
+
+def test_fresnel_divides_once_per_polarization():
+    """Division is the slowest vector instruction in the Fresnel loop. `fresnel` for a real index
+    chooses its forms (rationalized or direct amplitude, or the transmittance) before dividing, so
+    its compiled program has two divisions, the textbook formula's count, in one loop; `fresnel_sp`
+    has one per output. Pins the structure, not a time (the bench's "What bounds XLA" rows)."""
+    import jax
+    import jax.numpy as jnp
+
+    import jaxoptics as jo
+
+    if jax.default_backend() != "cpu":
+        return
+
+    def divisions(f, *args):
+        text = jax.jit(f).lower(*args).compile().as_text()
+        entry = text.split("ENTRY", 1)[1]
+        return text.count(" divide("), entry.count(" fusion(")
+
+    for dt in (jnp.float32, jnp.float64):
+        c = jnp.linspace(0, 1, 1000, dtype=dt)
+        e = jnp.linspace(1.0, 2.0, 1000, dtype=dt)
+        assert divisions(lambda c: jo.fresnel(c, 1.5, 1.0), c) == (2, 1)
+        assert divisions(lambda c, e: jo.fresnel(c, e, 1.2), c, e) == (2, 1)
+        assert divisions(lambda c, e: jo.fresnel(c, 1.2, e), c, e) == (2, 1)
+        assert divisions(lambda c: jo.fresnel_sp(c, 1.0, 1.5)[0], c) == (1, 1)
+        assert divisions(lambda c: jo.fresnel_sp(c, 1.0, 1.5)[1], c) == (1, 1)
+
+
 _FAULTS = """
 import resource, statistics, sys, jax, jax.numpy as jnp, jaxoptics as jo
 applied = jo.keep_freed_memory(enable=sys.argv[1] == "1")

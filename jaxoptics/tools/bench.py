@@ -368,6 +368,26 @@ def _naive_jax_fresnel(c, e1, e2):
     return jnp.where(ct2 < 0, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
+def _guarded_naive_jax_fresnel(c, e1, e2):
+    """The textbook formula with the exact kernel's guards and none of its accuracy forms: NaN for
+    invalid input, `|cos_i|`, the 0/0 of grazing incidence with `eta1 == eta2`, and a square root
+    whose gradient stays finite at the critical angle (the double `where`). Side by side with the
+    exact kernel and the bare formula, it splits the exact kernel's extra time into the price of
+    the guards and the price of the accurate forms."""
+    import jax.numpy as jnp
+
+    c = jnp.abs(c)
+    valid = (c < jnp.inf) & (e1 > 0) & (e1 < jnp.inf) & (e2 > 0) & (e2 < jnp.inf)
+    ct2 = 1 - (e1 / e2) ** 2 * (1 - c * c)
+    ct = jnp.where(ct2 > 0, jnp.sqrt(jnp.maximum(ct2, jnp.finfo(c.dtype).tiny)), 0)
+    ds, dp = e1 * c + e2 * ct, e2 * c + e1 * ct
+    ok = (ds * ds > 0) & (dp * dp > 0)
+    rs = (e1 * c - e2 * ct) / jnp.where(ok, ds, 1)
+    rp = (e2 * c - e1 * ct) / jnp.where(ok, dp, 1)
+    R = jnp.where(ok, jnp.where(ct2 < 0, 1.0, 0.5 * (rs * rs + rp * rp)), jnp.where(e1 > e2, 1.0, 0.0))
+    return jnp.where(valid, R, jnp.nan)
+
+
 def _schlick_pow(c, e1, e2):
     import jax.numpy as jnp
 
@@ -591,7 +611,8 @@ def bench_limits(*, quick=False, progress=None, n=None):
     c = jnp.asarray(base)
     kernels = (("copy (x * 2)", lambda c: c * 2),
                ("fresnel, exact (jaxoptics)", lambda c: jo.fresnel(c, e1, e2)),
-               ("naive JAX textbook fresnel", lambda c: _naive_jax_fresnel(c, e1, e2)))
+               ("naive JAX textbook fresnel", lambda c: _naive_jax_fresnel(c, e1, e2)),
+               ("naive JAX textbook fresnel with the exact kernel's guards", lambda c: _guarded_naive_jax_fresnel(c, e1, e2)))
     for name, f in kernels:
         for donate in (False, True):
             run_rows(name, f, donate, c)
@@ -601,7 +622,9 @@ def bench_limits(*, quick=False, progress=None, n=None):
     # the kernels as part of a caller's program: reduced (a loss, a radiance sum), where XLA fuses
     # the kernel's loop into the reduction
     consumers = (("fresnel, exact (jaxoptics), consumed by jnp.sum", lambda c: jnp.sum(jo.fresnel(c, e1, e2))),
-                 ("naive JAX textbook fresnel, consumed by jnp.sum", lambda c: jnp.sum(_naive_jax_fresnel(c, e1, e2))))
+                 ("naive JAX textbook fresnel, consumed by jnp.sum", lambda c: jnp.sum(_naive_jax_fresnel(c, e1, e2))),
+                 ("naive JAX textbook fresnel with the exact kernel's guards, consumed by jnp.sum",
+                  lambda c: jnp.sum(_guarded_naive_jax_fresnel(c, e1, e2))))
     for name, f in consumers:
         run_rows(name, f, False, c)
     # the fused interface kernel against its most expensive part (vector outputs: 3x the bytes)
