@@ -339,9 +339,12 @@ def _terms(cos_i, eta1, eta2, sin_sq=None, q_given=None, *, own_jvp=False) -> _T
     # in different fusions with different FMA contraction, so two copies can disagree when q is
     # within rounding of 0. Each output therefore selects on `tir` exactly once, at the end,
     # between two branches that both make sense there (at q ~ 0 both give R ~ 1).
+    # With `own_jvp` nothing is differentiated, and every value computed from the divisors is
+    # selected on `ok` before it is returned (the quotients themselves may then be inf or NaN).
     ok = (_abs2(den_s) > 0) & (_abs2(den_p) > 0)
-    den_s = jnp.where(ok, den_s, 1)
-    den_p = jnp.where(ok, den_p, 1)
+    if not own_jvp:
+        den_s = jnp.where(ok, den_s, 1)
+        den_p = jnp.where(ok, den_p, 1)
     return _Terms(eta1, eta2, c, ki, kt, diff, tir, m, ok, den_s, den_p, 1 / den_s, 1 / den_p, valid)
 
 
@@ -451,7 +454,9 @@ def _quotients_real(t: _Terms, eta1, eta2):
             q = num / D_p (= r_p)               where R_p <= 1/2 otherwise (direct),
             q = 4 k_i k_t (eta1 eta2)**2 / D_p**2 (= T_p)  elsewhere.
 
-    The choices are tested on division-free equivalents (`|diff| <= D_s**2 / sqrt(2)` for
+    Where `not t.ok` the quotients may be inf or NaN (`_terms(..., own_jvp=True)` leaves the
+    divisors as they are); every caller selects on `t.ok`. The choices are tested on division-free
+    equivalents (`|diff| <= D_s**2 / sqrt(2)` for
     `R_s <= 1/2`), so the loop has two divisions and one square root, as the textbook formula
     has; divided form by form it had five, and a division is the slowest vector instruction here.
     Under TIR `k_t = 0`, so both quotients are transmittances equal to 0: `R = 1` and `T = 0`
@@ -468,7 +473,7 @@ def _quotients_real(t: _Terms, eta1, eta2):
     rational = 3 * jnp.abs(num) <= dp
     small_p = rational | (jnp.abs(num) <= _HALF_SQRT2 * dp)
     n_p = jnp.where(rational, diff * x, jnp.where(small_p, num, kk4 * (eta1 * eta2) ** 2))
-    d_p = jnp.where(rational, ds * dp, jnp.where(small_p, dp, dp * dp))
+    d_p = dp * jnp.where(rational, ds, jnp.where(small_p, 1, dp))  # D_s D_p, D_p or D_p**2
     q_p = _one_reader(n_p / d_p)
     return small_s, q_s, small_p, q_p
 
