@@ -308,9 +308,9 @@ def _terms(cos_i, eta1, eta2, sin_sq=None, q_given=None, *, own_jvp=False) -> _T
     sin^2 of the angle of incidence from a cross product (see `_kt_squared`).
 
     `own_jvp`: the caller has a derivative rule of its own (`_sp_rt_real`, `_fresnel_real`) and
-    does not differentiate these values, so `|cos_i|` and `k_t` need no guards for autodiff:
-    `abs` for `_abs_cos` and a plain square root of `max(k_t^2, 0)` for `sqrt_where` (the same
-    values, three fewer vector instructions per element)."""
+    does not differentiate these values, so they need no guards for autodiff: `abs` instead of
+    `_abs_cos`, the square root of `k_t^2` clamped at 0 instead of `sqrt_where`, and the divisors
+    left as they are where they vanish (the same values, with fewer instructions per element)."""
     c = jnp.abs(cos_i) if own_jvp else _abs_cos(cos_i)
     if jnp.iscomplexobj(eta2):
         valid = _positive_finite(eta1) & _valid_index(eta2) & (c < jnp.inf)
@@ -454,13 +454,13 @@ def _quotients_real(t: _Terms, eta1, eta2):
             q = num / D_p (= r_p)               where R_p <= 1/2 otherwise (direct),
             q = 4 k_i k_t (eta1 eta2)**2 / D_p**2 (= T_p)  elsewhere.
 
-    Where `not t.ok` the quotients may be inf or NaN (`_terms(..., own_jvp=True)` leaves the
-    divisors as they are); every caller selects on `t.ok`. The choices are tested on division-free
-    equivalents (`|diff| <= D_s**2 / sqrt(2)` for
-    `R_s <= 1/2`), so the loop has two divisions and one square root, as the textbook formula
-    has; divided form by form it had five, and a division is the slowest vector instruction here.
-    Under TIR `k_t = 0`, so both quotients are transmittances equal to 0: `R = 1` and `T = 0`
-    exactly, with no select on the TIR mask.
+    The choices are tested on division-free equivalents (`|diff| <= D_s**2 / sqrt(2)` for
+    `R_s <= 1/2`), so the loop has two divisions and one square root, as the textbook formula has;
+    divided form by form, it would have five, and a division is the slowest vector instruction
+    here. Under TIR `k_t = 0`, so both quotients are transmittances equal to 0: `R = 1` and
+    `T = 0` exactly, with no select on the TIR mask. Where `not t.ok` the quotients may be inf or
+    NaN (`_terms(..., own_jvp=True)` leaves the divisors as they are); every caller selects on
+    `t.ok`.
     """
     e1, e2, ki, kt, ds, dp, diff = t.e1, t.e2, t.ki, t.kt, t.den_s, t.den_p, t.diff
     kk4 = 4 * ki * kt
@@ -508,15 +508,10 @@ def _powers(t: _Terms, eta1, eta2):
     if not jnp.iscomplexobj(t.kt):
         return _powers_real(t, eta1, eta2)
     r_s, r_p = _r_amplitudes(t)
-    if jnp.iscomplexobj(t.kt):
-        # Power entering medium 2 (Poynting flux just past the interface), equal to 1 - R.
-        ki = jnp.real(t.ki)
-        Ts = 4 * ki * jnp.real(t.kt) * _abs2(t.inv_s)
-        Tp = 4 * eta1 * eta1 * ki * jnp.real(eta2 * eta2 * jnp.conj(t.kt)) * _abs2(t.inv_p)
-    else:
-        kk4 = 4 * t.ki * t.kt
-        Ts = kk4 / t.den_s / t.den_s
-        Tp = (kk4 * (eta1 * eta2) ** 2) / t.den_p / t.den_p
+    # Power entering medium 2 (Poynting flux just past the interface), equal to 1 - R.
+    ki = jnp.real(t.ki)
+    Ts = 4 * ki * jnp.real(t.kt) * _abs2(t.inv_s)
+    Tp = 4 * eta1 * eta1 * ki * jnp.real(eta2 * eta2 * jnp.conj(t.kt)) * _abs2(t.inv_p)
     R_s, T_s = _power_pair(t, _abs2(r_s), Ts)
     R_p, T_p = _power_pair(t, _abs2(r_p), Tp)
     return R_s, R_p, T_s, T_p
