@@ -81,7 +81,6 @@ def test_single_output_kernels_compile_to_one_loop():
     assert _fusions(jax.jit(lambda c: jnp.sum(jo.fresnel_amplitudes(c, 1.5, 1.0).R)).lower(big).compile()) <= 5
 
 
-
 def test_fresnel_divides_once_per_polarization():
     """Division is the slowest vector instruction in the Fresnel loop. `fresnel` for a real index
     chooses its forms (rationalized or direct amplitude, or the transmittance) before dividing, so
