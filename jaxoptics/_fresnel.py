@@ -545,16 +545,20 @@ def _fresnel_real(cos_i, eta1, eta2, q):
     invalid-element selects applied once to the sum instead of to each polarization. It ends in a
     select, as `unpolarized` does and for the same reason (a reduction that consumes it does not
     cut its loop)."""
-    t = _terms(cos_i, eta1, eta2, q_given=q, own_jvp=True)
+    return _unpolarized_real(_terms(cos_i, eta1, eta2, q_given=q, own_jvp=True), eta1, eta2)
+
+
+def _unpolarized_real(t: _Terms, eta1, eta2):
     small_s, q_s, small_p, q_p = _quotients_real(t, eta1, eta2)
     R = jnp.where(t.ok, 0.5 * (_reflectance(small_s, q_s) + _reflectance(small_p, q_p)), _at_grazing(t))
     return jnp.where(t.valid, R, jnp.nan)
 
 
 def _fresnel_real_jvp(primals, tangents):
-    t = _terms(*primals[:3], q_given=primals[3], own_jvp=True)
-    dR_s, dR_p = _real_tangents(t, primals[0], tangents[:3])
-    return _fresnel_real(*primals), 0.5 * (dR_s + dR_p)
+    cos_i, eta1, eta2, q = primals
+    t = _terms(cos_i, eta1, eta2, q_given=q, own_jvp=True)
+    dR_s, dR_p = _real_tangents(t, cos_i, tangents[:3])
+    return _unpolarized_real(t, eta1, eta2), 0.5 * (dR_s + dR_p)
 
 
 _fresnel_real.defjvp(_fresnel_real_jvp, symbolic_zeros=True)
