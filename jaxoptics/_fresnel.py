@@ -545,20 +545,17 @@ def _fresnel_real(cos_i, eta1, eta2, q):
     invalid-element selects applied once to the sum instead of to each polarization. It ends in a
     select, as `unpolarized` does and for the same reason (a reduction that consumes it does not
     cut its loop)."""
-    return _unpolarized_real(_terms(cos_i, eta1, eta2, q_given=q, own_jvp=True), eta1, eta2)
-
-
-def _unpolarized_real(t: _Terms, eta1, eta2):
+    t = _terms(cos_i, eta1, eta2, q_given=q, own_jvp=True)
     small_s, q_s, small_p, q_p = _quotients_real(t, eta1, eta2)
     R = jnp.where(t.ok, 0.5 * (_reflectance(small_s, q_s) + _reflectance(small_p, q_p)), _at_grazing(t))
     return jnp.where(t.valid, R, jnp.nan)
 
 
 def _fresnel_real_jvp(primals, tangents):
-    cos_i, eta1, eta2, q = primals
-    t = _terms(cos_i, eta1, eta2, q_given=q, own_jvp=True)
-    dR_s, dR_p = _real_tangents(t, cos_i, tangents[:3])
-    return _unpolarized_real(t, eta1, eta2), 0.5 * (dR_s + dR_p)
+    t = _terms(*primals[:3], q_given=primals[3], own_jvp=True)
+    dR_s, dR_p = _real_tangents(t, primals[0], tangents[:3])
+    # the primal output through `_fresnel_real` itself (see `_sp_rt_real_jvp`)
+    return _fresnel_real(*primals), 0.5 * (dR_s + dR_p)
 
 
 _fresnel_real.defjvp(_fresnel_real_jvp, symbolic_zeros=True)
@@ -619,16 +616,25 @@ def _sp_rt_real_jvp(primals, tangents):
     """
     cos_i, eta1, eta2, q = primals
     t = _terms(cos_i, eta1, eta2, q_given=q, own_jvp=True)
-    out = _nan_where_invalid(t.valid, *_powers(t, eta1, eta2))
     dR_s, dR_p = _real_tangents(t, cos_i, tangents[:3])
-    return out, (dR_s, dR_p, -dR_s, -dR_p)
+    # The primal output through `_sp_rt_real` itself, not from `t`: differentiating this rule
+    # (second derivatives) then uses this rule again instead of autodiff through the unguarded
+    # own-derivative terms (XLA merges the two evaluations).
+    return _sp_rt_real(*primals), (dR_s, dR_p, -dR_s, -dR_p)
 
 
 _sp_rt_real.defjvp(_sp_rt_real_jvp, symbolic_zeros=True)
 
 
 def _real_tangents(t: _Terms, cos_i, tangents):
-    """(dR_s, dR_p) from the tangents of (cos_i, eta1, eta2) (see `_sp_rt_real_jvp`)."""
+    """(dR_s, dR_p) from the tangents of (cos_i, eta1, eta2) (see `_sp_rt_real_jvp`).
+
+    This rule is itself differentiated where second derivatives are taken (a fit's
+    implicit-function gradient takes them), so it uses the divisors guarded as in `_terms`: the
+    terms of `_terms(..., own_jvp=True)` leave them 0 at grazing incidence, and reverse mode
+    through `1 / 0` gives 0 * inf = NaN even where the result is selected away."""
+    den_s, den_p = jnp.where(t.ok, t.den_s, 1), jnp.where(t.ok, t.den_p, 1)
+    t = t._replace(den_s=den_s, den_p=den_p, inv_s=1 / den_s, inv_p=1 / den_p)
     r_s, r_p = _r_amplitudes(t)
     live = t.ok & t.valid & ~t.tir & (t.kt > 0)
     e1, e2, c, ki, m, diff = t.e1, t.e2, t.c, t.ki, t.m, t.diff

@@ -88,6 +88,25 @@ def test_gradients_finite_everywhere(dtype):
                 bad.append((name, mode, p, [float(x) for x in grads], float(val)))
     assert not bad, bad[:10]
 
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_second_derivatives_finite_everywhere(dtype):
+    """The Hessian in (cos_i, eta1, eta2) at the singular points, in all four compositions of
+    forward and reverse mode: a fit's implicit-function gradient differentiates the kernels' own
+    derivative rules, and reverse over forward meets 0 * inf in an unguarded rule that the first
+    derivatives never see (grazing incidence under TIR)."""
+    pts = np.asarray(_singular_points(dtype)).T
+    args = tuple(jnp.asarray(x) for x in pts)
+    modes = {"fwd-fwd": (jax.jacfwd, jax.jacfwd), "rev-fwd": (jax.jacrev, jax.jacfwd),
+             "fwd-rev": (jax.jacfwd, jax.jacrev), "rev-rev": (jax.jacrev, jax.jacrev)}
+    bad = []
+    for (name, f, _), (mode, (outer, inner)) in itertools.product(SCALAR_KERNELS, modes.items()):
+        h = jax.vmap(outer(lambda x: inner(lambda y: f(*y))(x)))(jnp.stack(args, -1))
+        assert h.shape == (len(pts[0]), 3, 3) and h.dtype == dtype, (name, mode, h.shape, h.dtype)
+        for p, hp in zip(pts.T, np.asarray(h)):
+            if not np.all(np.isfinite(hp)):
+                bad.append((name, mode, tuple(float(x) for x in p), hp.tolist()))
+    assert not bad, bad[:10]
+
 
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_vector_input_gradients_finite(dtype):
