@@ -66,3 +66,27 @@ def test_stack_section(report):
         assert r["mp_max_abs_diff"] < 1e-13, r
         assert r["energy_f64"] < 1e-13 and r["energy_f32"] < 2e-6, r
         assert r["f32_max_excess_R"] < 1e-5 and r["f32_max_abs_err_A"] < 1e-4, r
+
+
+def test_bound_reaches_the_extremum_near_brewster():
+    """The backward bound is a sup over the 2-ulp window, so it must reach the window's extremum.
+    At a large index contrast the critical and Brewster angles lie within an ulp of each other and
+    R falls from 1 to its minimum within a fraction of an ulp of cos_i: the bound must cover the
+    change to that minimum, found here by 50-digit mpmath on a fine grid (float32 inputs from a
+    10^6-input sweep, where R drops from 1 to 0.4994)."""
+    import jax
+    import mpmath as mp
+    from helpers import fresnel_ref
+
+    import jaxoptics as jo
+    from jaxoptics.tools.stress import _scalar_bound_f64
+
+    c, a, b = np.float32(0.9998595714569092), np.float32(1.2338289022445679), np.float32(0.020676463842391968)
+    with mp.workdps(50):
+        R = lambda x: (lambda d: (d["R_s"] + d["R_p"]) / 2)(fresnel_ref(x, mp.mpf(float(a)), mp.mpf(float(b))))
+        h = 2 * mp.mpf(float(np.spacing(c)))
+        x0 = mp.mpf(float(c))
+        change = max(abs(R(x0 - h + 2 * h * k / 1000) - R(x0)) for k in range(1001))
+    _, bound = _scalar_bound_f64(jax.jit(jo.fresnel), np.array([c]), np.array([a]), np.array([b]), np.float32)
+    assert float(change) > 0.5  # the cusp is inside the window
+    assert bound[0] >= float(change) * (1 - 1e-8), (bound[0], float(change))

@@ -152,7 +152,12 @@ def _scalar_bound_f64(f64, c, a, b, dtype, ulps=2):
             else:
                 special = [a64 * s_i, a64 * s_i / np.maximum(c64, 1e-300)]
         for sp in special:
-            cands.append(np.where(np.abs(sp - x) <= h, sp, x))
+            inside = np.abs(sp - x) <= h
+            cands.append(np.where(inside, sp, x))
+            # Near Brewster's angle at a large index contrast the extremum of the result lies a
+            # fraction of an ulp from the special point, and the result changes by many ulps
+            # across that fraction: Newton iterates toward it, each kept in the window
+            cands += _toward_extremum(f64, (c64, a64, b64), j, base, np.where(inside, sp, x), x - h, x + h)
         worst = np.zeros(base.shape)
         for v in cands:
             args = [c64, a64, b64]
@@ -162,6 +167,46 @@ def _scalar_bound_f64(f64, c, a, b, dtype, ulps=2):
             worst = np.maximum(worst, np.where(np.isfinite(d), d, 0))
         total += worst
     return base, total
+
+
+def _toward_extremum(f64, args, j, base, v0, lo, hi, steps=6):
+    """Newton iterates, from `v0`, toward a stationary point of |f - base|^2 in argument `j`, each
+    clipped to [lo, hi]: more candidates for the sup of `_scalar_bound_f64` (any point of the
+    window is a valid one; where the derivatives are not finite the iterate stays put)."""
+    import jax.numpy as jnp
+
+    step = _newton_step(f64, j)
+    v, out = v0, []
+    consts = [jnp.asarray(x) for x in args]
+    for _ in range(steps):
+        nxt = np.asarray(step(jnp.asarray(v), jnp.asarray(base), *consts))
+        v = np.clip(np.where(np.isfinite(nxt), nxt, v), lo, hi)
+        out.append(v)
+    return out
+
+
+_NEWTON: dict = {}
+
+
+def _newton_step(f64, j):
+    import jax
+    import jax.numpy as jnp
+
+    key = (f64, j)
+    if key not in _NEWTON:
+        def g(v, base, *xs):
+            xs = list(xs)
+            xs[j] = v
+            d = f64(*xs) - base
+            return jnp.real(d * jnp.conj(d))
+
+        def step(v, base, *xs):
+            d1 = lambda v: jax.jvp(lambda u: g(u, base, *xs), (v,), (jnp.ones_like(v),))[1]
+            g1, g2 = jax.jvp(d1, (v,), (jnp.ones_like(v),))
+            return v - g1 / g2
+
+        _NEWTON[key] = jax.jit(step)
+    return _NEWTON[key]
 
 
 def _grad_counts(f, args, complex_out):
