@@ -8,6 +8,16 @@ program). The store keeps the lowered program (StableHLO, serialized by `jax.exp
 that names everything it was traced from; a later process with the same key deserializes it and
 hands it to `jit`, whose compilation the persistent cache then serves.
 
+Beside each traced program the store keeps its compiled executable for this machine
+(`<key2>.xlaexec`, serialized by `jax.experimental.serialize_executable`, under a key that adds
+the backend's platform and version and the processor's model and instruction-set extensions,
+since XLA compiles for the host's). A later process on the same machine loads that and calls it:
+no tracing, no lowering and no compilation-cache lookup (measured: a warm `fit --example` spends
+0.2 s in its fit against 0.6 s loading the traced program). Where it is missing, foreign or
+damaged, the traced program is loaded, compiled (by the compilation cache) and its executable
+written again. Like JAX's compilation cache, whose entries are also machine code, the store
+trusts its directory: it is the user's own.
+
 The key is a SHA-256 of: the jaxoptics source (every `.py` file of the package, so an edited
 checkout never reuses a stale program), the versions of jax and jaxlib, the backend, the
 configuration that changes tracing (`jax_enable_x64`, the default matmul precision, the dtype
@@ -65,12 +75,13 @@ def enable_cache(*, path: str | os.PathLike | None = None) -> Path | None:
     `~/.cache/jaxoptics/xla`; `JAXOPTICS_CACHE_DIR=off` leaves the cache off).
 
     A later process that runs the same fits (same shapes and options) then neither traces nor
-    compiles them: `fit_eta` and `fit_stack` load their traced programs from the directory, and
-    JAX's persistent compilation cache, turned on here for every program of the process (JAX's
-    default keeps only those that took a second or more to compile), loads the compiled ones. The
-    directory is capped at 1 GiB of compiled programs and 256 MiB of traced ones, least recently
-    used first out; JAX guards its entries with a file lock and the traced programs are written
-    atomically, so processes can share the directory. Deleting it is always safe.
+    compiles them: `fit_eta` and `fit_stack` load their executables (or, on another machine,
+    their traced programs) from the directory, and JAX's persistent compilation cache, turned on
+    here for every program of the process (JAX's default keeps only those that took a second or
+    more to compile), loads the compiled ones. The directory is capped at 1 GiB of JAX's entries
+    and 256 MiB of the fits' traced programs and executables, least recently used first out; JAX
+    guards its entries with a file lock and the fits' files are written atomically, so processes
+    can share the directory. Deleting it is always safe.
 
     The compilation cache is a setting of the whole process (`jax.config`); call this once, at
     the start, before anything is compiled. The command line (`python -m jaxoptics fit`,
@@ -219,14 +230,86 @@ def call(fn, name: str, args: tuple, *, static=None, options=None, fallback):
     if key is None:
         return fallback()
     if key not in _in_process:
-        path = _dir[0] / (key + _SUFFIX)
-        loaded = _load(path) or _export(fn, name, in_tree, leaves, path)
+        exe_path = _dir[0] / (_executable_key(key) + _EXE_SUFFIX)
+        loaded = _load_executable(exe_path)
         if loaded is None:
-            return fallback()
-        exported, out_tree = loaded
-        _in_process[key] = (jax.jit(exported.call, compiler_options=options), out_tree)
+            path = _dir[0] / (key + _SUFFIX)
+            exported_tree = _load(path) or _export(fn, name, in_tree, leaves, path)
+            if exported_tree is None:
+                return fallback()
+            exported, out_tree = exported_tree
+            run = jax.jit(exported.call, compiler_options=options)
+            loaded = (_compile_and_store(run, leaves, out_tree, exe_path), out_tree)
+        _in_process[key] = loaded
     run, out_tree = _in_process[key]
     return jax.tree_util.tree_unflatten(out_tree, run(*leaves))
+
+
+_EXE_SUFFIX = ".xlaexec"
+
+
+@functools.cache
+def _machine() -> str:
+    """What a compiled executable depends on besides its program: the backend's platform and
+    version, and on the CPU the processor's model and instruction-set extensions (XLA compiles
+    for the host's)."""
+    import platform
+
+    dev = jax.devices()[0]
+    parts = [dev.platform, dev.device_kind, dev.client.platform_version, platform.machine()]
+    try:
+        with open("/proc/cpuinfo") as f:
+            info = f.read()
+        wanted = ("model name", "flags", "Features", "CPU implementer", "CPU part")  # x86; Arm
+        seen: dict = {}
+        for line in info.splitlines():
+            name = line.split(":")[0].strip()
+            if name in wanted:
+                seen.setdefault(name, line)
+        parts += seen.values()
+    except OSError:
+        parts.append(platform.processor())
+    return "|".join(parts)
+
+
+def _executable_key(key: str) -> str:
+    return hashlib.sha256(f"{key}|{_machine()}".encode()).hexdigest()
+
+
+def _compile_and_store(jitted, leaves, out_tree, path: Path):
+    """`jitted` compiled for `leaves`, its executable written to `path`; `jitted` itself if the
+    executable cannot be serialized."""
+    from jax.experimental import serialize_executable
+
+    try:
+        compiled = jitted.lower(*leaves).compile()
+        blob = pickle.dumps((serialize_executable.serialize(compiled), out_tree))
+    except Exception as e:  # a backend without executable serialization
+        _log.debug("executable not stored: %s", e)
+        return jitted
+    _write(path, blob)
+    return compiled
+
+
+def _load_executable(path: Path):
+    try:
+        blob = path.read_bytes()
+    except OSError:
+        return None
+    from jax.experimental import serialize_executable
+
+    try:
+        (payload, in_tree, exe_out_tree), out_tree = pickle.loads(blob)
+        compiled = serialize_executable.deserialize_and_load(payload, in_tree, exe_out_tree)
+    except Exception as e:  # a damaged or foreign file: compile again
+        _log.warning("jaxoptics: dropping unreadable stored executable %s (%s)", path.name, e)
+        path.unlink(missing_ok=True)
+        return None
+    try:
+        os.utime(path)
+    except OSError:
+        pass
+    return compiled, out_tree
 
 
 _in_process: dict[str, tuple] = {}
@@ -302,7 +385,7 @@ def _write(path: Path, blob: bytes) -> None:
 
 def _prune(folder: Path) -> None:
     files = []
-    for f in folder.glob("*" + _SUFFIX):
+    for f in [*folder.glob("*" + _SUFFIX), *folder.glob("*" + _EXE_SUFFIX)]:
         try:
             st = f.stat()
         except OSError:

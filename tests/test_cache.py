@@ -51,13 +51,23 @@ def test_fit_eta_stored_loaded_and_repaired(tmp_path, monkeypatch, caplog):
     plain = fit()
     _cache.enable_store(tmp_path)
     try:
-        first = fit()  # traced, stored, compiled
+        first = fit()  # traced, stored, compiled, its executable stored
         (path,) = tmp_path.glob("*.jaxexport")
+        (exe,) = tmp_path.glob("*.xlaexec")
         _cache._in_process.clear()  # as in a new process
-        with monkeypatch.context() as m:
+        with monkeypatch.context() as m:  # the executable: neither traced nor lowered
             m.setattr(_cache, "_export", _fails)
+            m.setattr(_cache, "_load", _fails)
             loaded = fit()
+        exe.write_bytes(b"not an executable")
+        _cache._in_process.clear()
+        with monkeypatch.context() as m, caplog.at_level(logging.WARNING, logger="jaxoptics._cache"):
+            m.setattr(_cache, "_export", _fails)  # the traced program, compiled again
+            from_traced = fit()
+        assert "unreadable stored executable" in caplog.text
+        assert exe.read_bytes() != b"not an executable"
         path.write_bytes(b"not a stored program")
+        exe.unlink()
         _cache._in_process.clear()
         with caplog.at_level(logging.WARNING, logger="jaxoptics._cache"):
             repaired = fit()
@@ -65,7 +75,7 @@ def test_fit_eta_stored_loaded_and_repaired(tmp_path, monkeypatch, caplog):
         assert path.read_bytes() != b"not a stored program"
     finally:
         _cache.disable_store()
-    for r in (first, loaded, repaired):
+    for r in (first, loaded, from_traced, repaired):
         _assert_same(plain, r)
     assert np.asarray(plain.converged).all()
 
@@ -167,3 +177,15 @@ def test_a_planted_file_runs_nothing(tmp_path, caplog):
         assert _cache._load(path) is None
     assert "is not part of a stored program" in caplog.text
     assert not path.exists()
+
+
+def test_executable_key_names_the_machine(monkeypatch):
+    """A stored executable is machine code for the host's processor: its key adds the backend and
+    the processor's model and instruction-set extensions to the program's key."""
+    key = "0" * 64
+    here = _cache._executable_key(key)
+    assert here != _cache._executable_key("1" * 64)
+    if os.path.exists("/proc/cpuinfo"):
+        assert "flags" in _cache._machine() or "Features" in _cache._machine()  # x86, Arm
+    monkeypatch.setattr(_cache, "_machine", lambda: "another processor")
+    assert _cache._executable_key(key) != here
