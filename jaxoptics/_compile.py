@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import functools
 
-import equinox as eqx
 import jax
 import numpy as np
 
@@ -68,7 +67,7 @@ def filter_jit(fn):
 
     @functools.wraps(fn)
     def call(*args, quick=False, **kwargs):
-        dynamic, static = eqx.partition((args, kwargs), eqx.is_array)
+        dynamic, static = _partition((args, kwargs))
         leaves, treedef = jax.tree_util.tree_flatten(static)
         static_key = (treedef, tuple(leaves))
         if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(dynamic)):
@@ -83,6 +82,22 @@ def filter_jit(fn):
     return call
 
 
+def _is_array(x) -> bool:
+    return isinstance(x, (jax.Array, np.ndarray, np.generic))
+
+
+def _partition(tree):
+    """(arrays, everything else) of `tree`, each with None in the other's places: equinox's
+    `partition(tree, is_array)`, without importing equinox (a process that loads its compiled fits
+    from the store does not need it)."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    pick = lambda want: jax.tree_util.tree_unflatten(treedef, [x if _is_array(x) == want else None for x in leaves])
+    return pick(True), pick(False)
+
+
 def _combine(static, dynamic):
+    """The inverse of `_partition`: `dynamic` with the leaves of `static` in its None places."""
     treedef, leaves = static
-    return eqx.combine(dynamic, jax.tree_util.tree_unflatten(treedef, leaves))
+    rest = jax.tree_util.tree_unflatten(treedef, leaves)
+    is_none = lambda x: x is None
+    return jax.tree_util.tree_map(lambda a, b: b if a is None else a, dynamic, rest, is_leaf=is_none)

@@ -19,17 +19,16 @@ from typing import TYPE_CHECKING
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from . import _validate as V
 from ._fit_followups import _batch_shards, _fit_differentiable, _fit_per_shard, _is_concrete, _solve_stages
 from ._fit_model import POLARIZATIONS, S_WEIGHT
 from ._fit_result import FitResult
-from ._fit_solver import _default_solver, _tol
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
+    import optimistix as optx
     from jaxtyping import ArrayLike, Float, Inexact
 
 
@@ -208,12 +207,13 @@ def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, e
     else:
         y_init = xp.zeros((Rf.shape[0], p), dt)
     retry = solver is None and not absorbing
-    solver = _default_solver(dt, absorbing) if solver is None else solver
-    lm: optx.LevenbergMarquardt | None = optx.LevenbergMarquardt(rtol=_tol(dt), atol=_tol(dt)) if retry else None
+    # the default solvers by name (`_fit_solver._solver`): optimistix is imported only to trace
+    spec: object = ("default", np.dtype(dt).name, bool(absorbing)) if solver is None else solver
+    lm = ("lm", np.dtype(dt).name) if retry else None
     if not isinstance(polarization, str):  # per curve: the weight of s-polarized light, data of the one program
         polarization = xp.asarray(np.vectorize(S_WEIGHT.get, otypes=[float])(polarization).reshape(-1), dt)
     kw = dict(polarization=polarization, absorbing=absorbing, max_steps=int(max_steps), sigma_given=sigma is not None,
-              solver=solver, lm=lm, use_init=use_init)
+              solver=spec, lm=lm, use_init=use_init)
     eta1_arr = xp.asarray(eta1, dt)
     shards = _batch_shards(Rf)
     if shards is None:

@@ -11,7 +11,6 @@ eagerly, under `jax.jit` and under `jax.vmap` (see `_solve` for when each stage 
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,8 +18,27 @@ import numpy as np
 from ._compile import filter_jit
 from ._fit_model import _reflectance
 from ._fit_result import FitResult
-from ._fit_solver import _errors, _fit_batch, _fit_block
 from ._fit_starts import _of_curve, _per_curve
+
+
+# `_fit_solver` (and with it optimistix, lineax and equinox) loads when a program is traced: a
+# process that loads its compiled fit from the store (`_cache`) does not import them.
+def _fit_batch(*args, **kwargs):
+    from ._fit_solver import _fit_batch
+
+    return _fit_batch(*args, **kwargs)
+
+
+def _fit_block(*args, **kwargs):
+    from ._fit_solver import _fit_block
+
+    return _fit_block(*args, **kwargs)
+
+
+def _errors(*args, **kwargs):
+    from ._fit_solver import _errors
+
+    return _errors(*args, **kwargs)
 
 # Curves whose start on the other branch fits within this factor of the solution's sum of
 # squares (on the start's 16 angles) are solved on that branch too (see `_second_branch`).
@@ -110,6 +128,8 @@ def _second_branch(res, alt, ratio, theta, R, w, eta1, solver, lm, kw):
     win = _where(swap, sub, mine)
     lose_eta = jnp.where(swap, mine.eta, sub.eta)
     gap2 = jnp.where(near, (win.eta - lose_eta) ** 2, 0)
+    import equinox as eqx
+
     win = eqx.tree_at(lambda r: (r.eta_alt, r.stderr, r.covariance), win,
                       (jnp.where(near, lose_eta, jnp.nan).astype(win.eta_alt.dtype), jnp.sqrt(win.stderr ** 2 + gap2),
                        win.covariance + gap2[:, None, None]))

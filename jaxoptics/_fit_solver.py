@@ -8,6 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
+import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
@@ -75,6 +76,20 @@ class OneColumnLeastSquares(lx.AbstractLinearSolver):
 
     def assume_full_rank(self):
         return False
+
+
+def _solver(spec):
+    """The optimistix solver `fit_eta` names by a spec (`("default", dtype name, absorbing)`,
+    `("lm", dtype name)`), or `spec` itself when it is a solver the caller gave. Specs keep
+    optimistix out of what `fit_eta` builds before calling its compiled program, so a process that
+    loads the program from the store (`_cache`) does not import optimistix at all."""
+    if not isinstance(spec, tuple):
+        return spec
+    kind, dtype, *rest = spec
+    if kind == "default":
+        return _default_solver(np.dtype(dtype), *rest)
+    tol = _tol(np.dtype(dtype))
+    return optx.LevenbergMarquardt(rtol=tol, atol=tol)
 
 
 def _default_solver(dtype, absorbing):
@@ -159,7 +174,7 @@ def _fit_one(cos_i, R, w, eta1, y0, *, polarization, absorbing, solver, max_step
     def residual(y, _):
         return _weigh(_model(cos_i, eta1, _params_to_eta(y, absorbing), polarization) - R, w)
 
-    sol = optx.least_squares(residual, solver, y0, max_steps=max_steps, throw=False)
+    sol = optx.least_squares(residual, _solver(solver), y0, max_steps=max_steps, throw=False)
     y = jnp.abs(sol.value)  # the physical branch
     cov, se, rms, chi2 = _errors(_model, cos_i, R, w, eta1, y, polarization=polarization, absorbing=absorbing,
                                  sigma_given=sigma_given)

@@ -189,3 +189,28 @@ def test_executable_key_names_the_machine(monkeypatch):
         assert "flags" in _cache._machine() or "Features" in _cache._machine()  # x86, Arm
     monkeypatch.setattr(_cache, "_machine", lambda: "another processor")
     assert _cache._executable_key(key) != here
+
+
+_WARM = """
+import sys, numpy as np, jax
+jax.config.update("jax_enable_x64", True)
+import jaxoptics as jo
+jo.enable_cache(path=sys.argv[1])
+c = jo.load_reflectance(jo.example_path()).curves()[0]
+r = jo.fit_eta(c.theta, c.R, polarization=c.polarization)
+print(float(r.eta), bool(r.converged), *(m in sys.modules for m in ("optimistix", "equinox", "lineax")))
+"""
+
+
+def test_warm_process_calls_the_stored_executable_without_the_solver_stack(tmp_path):
+    """A process whose fit is in the store loads its executable: it traces nothing, so it does
+    not import optimistix, equinox or lineax (the first process, which traces, does)."""
+    import subprocess
+    import sys
+
+    run = lambda: subprocess.run([sys.executable, "-c", _WARM, str(tmp_path)], capture_output=True, text=True,
+                                 check=True).stdout.split()
+    first, warm = run(), run()
+    assert first[2:] == ["True", "True", "True"], first
+    assert warm[2:] == ["False", "False", "False"], warm
+    assert warm[:2] == first[:2] and first[1] == "True"
