@@ -15,8 +15,10 @@ since XLA compiles for the host's). A later process on the same machine loads th
 no tracing, no lowering and no compilation-cache lookup (measured: a warm `fit --example` spends
 0.2 s in its fit against 0.6 s loading the traced program). Where it is missing, foreign or
 damaged, the traced program is loaded, compiled (by the compilation cache) and its executable
-written again. Like JAX's compilation cache, whose entries are also machine code, the store
-trusts its directory: it is the user's own.
+written again. An executable that calls custom kernels other than LAPACK's is not stored (their
+libraries' set-up happens when a program is lowered, which loading skips); for LAPACK's, loading
+sets them up (`_initialize_lapack`). Like JAX's compilation cache, whose entries are also machine
+code, the store trusts its directory: it is the user's own.
 
 The key is a SHA-256 of: the jaxoptics source (every `.py` file of the package, so an edited
 checkout never reuses a stale program), the versions of jax and jaxlib, the backend, the
@@ -283,12 +285,26 @@ def _compile_and_store(jitted, leaves, out_tree, path: Path):
 
     try:
         compiled = jitted.lower(*leaves).compile()
-        blob = pickle.dumps((serialize_executable.serialize(compiled), out_tree))
+        targets = sorted(set(_CUSTOM_CALL.findall(compiled.as_text() or "")))
+        if any(not t.startswith("lapack_") for t in targets):
+            raise _Uncacheable(f"custom calls {targets}")  # their libraries' set-up is unknown here
+        blob = pickle.dumps((serialize_executable.serialize(compiled), out_tree, targets))
     except Exception as e:  # a backend without executable serialization
         _log.debug("executable not stored: %s", e)
         return jitted
     _write(path, blob)
     return compiled
+
+
+_CUSTOM_CALL = re.compile(r'custom_call_target="([^"]+)"')
+
+
+def _initialize_lapack() -> None:
+    """Set up jaxlib's LAPACK kernels, which lowering a linear-algebra operation does and loading
+    an executable does not: an executable that calls them before this crashes the process."""
+    from jaxlib import lapack
+
+    lapack.prepare_lapack_call("geqrf", np.float64)
 
 
 def _load_executable(path: Path):
@@ -299,7 +315,9 @@ def _load_executable(path: Path):
     from jax.experimental import serialize_executable
 
     try:
-        (payload, in_tree, exe_out_tree), out_tree = pickle.loads(blob)
+        (payload, in_tree, exe_out_tree), out_tree, targets = pickle.loads(blob)
+        if targets:  # LAPACK's only (`_compile_and_store`)
+            _initialize_lapack()
         compiled = serialize_executable.deserialize_and_load(payload, in_tree, exe_out_tree)
     except Exception as e:  # a damaged or foreign file: compile again
         _log.warning("jaxoptics: dropping unreadable stored executable %s (%s)", path.name, e)

@@ -214,3 +214,31 @@ def test_warm_process_calls_the_stored_executable_without_the_solver_stack(tmp_p
     assert first[2:] == ["True", "True", "True"], first
     assert warm[2:] == ["False", "False", "False"], warm
     assert warm[:2] == first[:2] and first[1] == "True"
+
+
+_WARM_STACK = """
+import sys, numpy as np, jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp, jaxoptics as jo
+jo.enable_cache(path=sys.argv[1])
+wl = np.linspace(400.0, 900.0, 40)
+truth = jo.Sample([jo.Layer(1.46, 250.0)], jo.material("Si")).fixed()
+q = np.asarray(truth.quantities(("psi_deg", "delta_deg"), jnp.asarray(wl), jnp.full(40, np.radians(70.0))))
+sp = jo.make_spectra(wl, 70.0, {"psi_deg": q[0], "delta_deg": q[1]})
+model = jo.Sample([jo.Layer(1.46, jo.Free(100.0, 0.0, 600.0), name="film")], jo.material("Si"))
+print(repr(float(jo.fit_stack(model, sp)["film.thickness_nm"])), len(list(__import__("pathlib").Path(sys.argv[1]).glob("*.xlaexec"))))
+"""
+
+
+def test_warm_process_runs_a_stored_executable_that_calls_lapack(tmp_path):
+    """`fit_stack`'s program calls LAPACK (QR, eigh), whose kernels jaxlib sets up when it lowers a
+    linear-algebra operation; a process that only loads the executable sets them up itself (it
+    would crash otherwise)."""
+    import subprocess
+    import sys
+
+    run = lambda: subprocess.run([sys.executable, "-c", _WARM_STACK, str(tmp_path)], capture_output=True, text=True)
+    first, warm = run(), run()
+    assert first.returncode == 0 and warm.returncode == 0, (first.returncode, warm.returncode, warm.stderr[-2000:])
+    assert first.stdout == warm.stdout and warm.stdout.split()[1] == "1", (first.stdout, warm.stdout)
+    assert float(warm.stdout.split()[0]) == pytest.approx(250.0, abs=1e-6)
