@@ -308,48 +308,46 @@ def _initialize_lapack() -> None:
 
 
 def _load_executable(path: Path):
-    try:
-        blob = path.read_bytes()
-    except OSError:
-        return None
-    from jax.experimental import serialize_executable
+    def parse(blob):
+        from jax.experimental import serialize_executable
 
-    try:
         (payload, in_tree, exe_out_tree), out_tree, targets = pickle.loads(blob)
         if targets:  # LAPACK's only (`_compile_and_store`)
             _initialize_lapack()
-        compiled = serialize_executable.deserialize_and_load(payload, in_tree, exe_out_tree)
-    except Exception as e:  # a damaged or foreign file: compile again
-        _log.warning("jaxoptics: dropping unreadable stored executable %s (%s)", path.name, e)
-        path.unlink(missing_ok=True)
-        return None
-    try:
-        os.utime(path)
-    except OSError:
-        pass
-    return compiled, out_tree
+        return serialize_executable.deserialize_and_load(payload, in_tree, exe_out_tree), out_tree
+
+    return _read_stored(path, parse, "executable")
 
 
-_in_process: dict[str, tuple] = {}
-
-
-def _load(path: Path):
+def _read_stored(path: Path, parse, what: str):
+    """`parse(bytes of path)`, or None if there is no such file; a file that does not parse (damaged,
+    or foreign) is deleted, so that it is written again."""
     try:
         blob = path.read_bytes()
     except OSError:
         return None
     try:
-        data, out_tree = _Unpickler(io.BytesIO(blob)).load()
-        exported = jax.export.deserialize(data)
-    except Exception as e:  # a damaged or foreign file: trace again
-        _log.warning("jaxoptics: dropping unreadable stored program %s (%s)", path.name, e)
+        value = parse(blob)
+    except Exception as e:
+        _log.warning("jaxoptics: dropping unreadable stored %s %s (%s)", what, path.name, e)
         path.unlink(missing_ok=True)
         return None
     try:
         os.utime(path)  # least recently used first out
     except OSError:  # pruned by another process meanwhile
         pass
-    return exported, out_tree
+    return value
+
+
+_in_process: dict[str, tuple] = {}
+
+
+def _load(path: Path):
+    def parse(blob):
+        data, out_tree = _Unpickler(io.BytesIO(blob)).load()
+        return jax.export.deserialize(data), out_tree
+
+    return _read_stored(path, parse, "program")
 
 
 class _Unpickler(pickle.Unpickler):
