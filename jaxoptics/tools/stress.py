@@ -16,6 +16,7 @@ cusps at the critical angle included), plus the result's own rounding.
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from pathlib import Path
@@ -185,28 +186,24 @@ def _toward_extremum(f64, args, j, base, v0, lo, hi, steps=6):
     return out
 
 
-_NEWTON: dict = {}
-
-
+@functools.cache
 def _newton_step(f64, j):
+    """One Newton step on d/dv |f - base|^2 = 0 in argument `j`, compiled once per kernel."""
     import jax
     import jax.numpy as jnp
 
-    key = (f64, j)
-    if key not in _NEWTON:
-        def g(v, base, *xs):
-            xs = list(xs)
-            xs[j] = v
-            d = f64(*xs) - base
-            return jnp.real(d * jnp.conj(d))
+    def g(v, base, *xs):
+        xs = list(xs)
+        xs[j] = v
+        d = f64(*xs) - base
+        return jnp.real(d * jnp.conj(d))
 
-        def step(v, base, *xs):
-            d1 = lambda v: jax.jvp(lambda u: g(u, base, *xs), (v,), (jnp.ones_like(v),))[1]
-            g1, g2 = jax.jvp(d1, (v,), (jnp.ones_like(v),))
-            return v - g1 / g2
+    def step(v, base, *xs):
+        d1 = lambda v: jax.jvp(lambda u: g(u, base, *xs), (v,), (jnp.ones_like(v),))[1]
+        g1, g2 = jax.jvp(d1, (v,), (jnp.ones_like(v),))
+        return v - g1 / g2
 
-        _NEWTON[key] = jax.jit(step)
-    return _NEWTON[key]
+    return jax.jit(step)
 
 
 def _grad_counts(f, args, complex_out):
