@@ -1,5 +1,5 @@
 """Fit the free parameters of a layered `Sample` to measured `Spectra`: one spectrum or a whole
-map in one compiled call.
+map in one compiled call (two when Levenberg-Marquardt is needed, see `fit_stack`).
 
 The method, per spectrum:
 
@@ -15,7 +15,8 @@ The method, per spectrum:
    most `max_grid` points.
 2. **Gauss-Newton, then Levenberg-Marquardt** (optimistix) from the `starts` best grid points,
    least squares weighted by `sigma`; the lowest chi^2 wins. Gauss-Newton (at most 20 steps) fits
-   nearly every spectrum; Levenberg-Marquardt restarts from the same points for those it did not.
+   nearly every spectrum; Levenberg-Marquardt restarts from the same points for those it did not,
+   in a second compiled call that is made (and compiled) only when there are such spectra.
    Bounds are kept by the usual change of variables (`x = lo + (hi - lo)(1 + sin u)/2` for two
    bounds, `lo - 1 + sqrt(u^2 + 1)` for one, as MINUIT and lmfit do). The spectra of a map are
    solved by a pool of lanes that take the next spectrum as soon as theirs has converged
@@ -244,14 +245,25 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     try:
         hash(key)
     except TypeError:  # a model holding lists or arrays: compiled for this call only
-        jitted, run, options = _program.__wrapped__(*key)
+        (first, errors_only, second), options = _program.__wrapped__(*key)
     else:
-        jitted, run, options = _program(*key)
-    if progress:  # a host callback, which `jax.export` cannot store
-        out = jitted(V, S)
+        (first, errors_only, second), options = _program(*key)
+
+    def call(stage, name, args):
+        if progress:  # a host callback, which `jax.export` cannot store
+            return stage.jitted(*args)
+        return _cache.call(stage.run, f"jaxoptics._stack_fit.{name}", args, static=key, options=options,
+                           fallback=lambda: stage.jitted(*args))
+
+    # Two compiled calls: Gauss-Newton, then the standard errors, or, where Gauss-Newton left some
+    # spectrum unfitted (one read from the device decides), Levenberg-Marquardt and the standard
+    # errors. The Levenberg-Marquardt program is compiled only when needed: on the bundled example
+    # it is not, and a first call compiles about a third less.
+    state = call(first, "_first_stage", (V, S))
+    if bool(np.all(np.asarray(state[3]))):
+        out = call(errors_only, "_errors_stage", (V, S, state))
     else:
-        out = _cache.call(run, "jaxoptics._stack_fit._program", (V, S), static=key, options=options,
-                          fallback=lambda: jitted(V, S))
+        out = call(second, "_second_stage", (V, S, state))
     x, sd, cov, corr, chi2r, conv, at_b, steps = out
     shp = lambda a: a.reshape(batch + a.shape[1:])
     return StackFit(tuple(f.name for f in free), shp(x), shp(sd), shp(cov), shp(corr), shp(chi2r), shp(conv),
@@ -260,8 +272,12 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
 
 @functools.lru_cache(maxsize=16)
 def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts, max_grid, max_steps, progress):
-    """The compiled fit for one sample structure, data grid and batch size (cached: a second
-    `fit_stack` call with the same ones runs without tracing or compiling)."""
+    """The fit for one sample structure, data grid and batch size as two stages (cached: a second
+    `fit_stack` call with the same ones runs without tracing or compiling): `first(V, S) -> state`,
+    the global start and Gauss-Newton; `errors_only(V, S, state) -> fit`, its standard errors; and
+    `second(V, S, state) -> fit`, Levenberg-Marquardt for the spectra Gauss-Newton did not fit, then
+    the standard errors. Where `first` fits every spectrum, `second` gives what `errors_only` gives
+    (its loop runs zero times)."""
     dtype = jnp.dtype(dtype_name)
     free = sample.free()
     p = len(free)
@@ -390,33 +406,55 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         conv = ok & jnp.all(jnp.isfinite(x)) & jnp.isfinite(chi2r)
         return sd, cov, corr, chi2r, conv, at_b
 
-    def run(V, S):
+    def problems(V, S):
+        """The least-squares problem of each (spectrum, start) pair, and its chi^2."""
+        fn = lambda u, i: residuals_u(u, V[i], S[i])
+        chi2 = lambda u, i: jnp.sum(residuals_x(to_x(u), wl, ang, V[i], S[i]) ** 2)
+        return fn, chi2
+
+    M = B * starts
+    spec = jnp.arange(M) // starts  # the spectrum of each (spectrum, start) problem
+
+    def best(u, c2, ok, steps):
+        """The lowest chi^2 among each spectrum's starts."""
+        x = jax.vmap(to_x)(u).reshape(B, starts, p)
+        c2 = jnp.where(jnp.isfinite(c2), c2, jnp.inf).reshape(B, starts)
+        ok = ok.reshape(B, starts) & jnp.isfinite(c2)
+        k = jnp.argmin(jnp.where(ok, c2, jnp.inf), axis=1)
+        pick = lambda a: jnp.take_along_axis(a, k.reshape((B, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
+        return pick(x), pick(c2), pick(ok), pick(steps.reshape(B, starts))
+
+    def finish(x, c2, ok, steps, V, S):
+        sd, cov, corr, chi2r, conv, at_b = _blocked(jax.vmap(errors), (x, c2, ok, V, S), _FIRST_BLOCK)
+        return x, sd, cov, corr, chi2r, conv, at_b, steps
+
+    def first(V, S):
+        """The global start and Gauss-Newton from every start: the starts `U0`, and the best
+        solution's `x`, `c2`, `ok`, `steps` per spectrum."""
         V, S = V.reshape(B, -1), S.reshape(B, -1)
+        fn, chi2 = problems(V, S)
         # the model on the grid does not depend on the data: evaluated once for the whole map, and
         # each spectrum only compares its data with it
         Mg = None if grid is None else jax.vmap(lambda x: model_x(x, wl[sub], ang[sub]))(jnp.asarray(grid, dtype))
-        U0 = _blocked(jax.vmap(lambda Vb, Sb: starts_of(Vb, Sb, Mg)), (V, S), _FIRST_BLOCK).reshape(B * starts, p)
-        M = B * starts
-        spec = jnp.arange(M) // starts  # the spectrum of each (spectrum, start) problem
-        fn = lambda u, i: residuals_u(u, V[i], S[i])
-        chi2 = lambda u, i: jnp.sum(residuals_x(to_x(u), wl, ang, V[i], S[i]) ** 2)
-
-        def best(u, c2, ok, steps):
-            """The lowest chi^2 among each spectrum's starts."""
-            x = jax.vmap(to_x)(u).reshape(B, starts, p)
-            c2 = jnp.where(jnp.isfinite(c2), c2, jnp.inf).reshape(B, starts)
-            ok = ok.reshape(B, starts) & jnp.isfinite(c2)
-            k = jnp.argmin(jnp.where(ok, c2, jnp.inf), axis=1)
-            pick = lambda a: jnp.take_along_axis(a, k.reshape((B, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
-            return pick(x), pick(c2), pick(ok), pick(steps.reshape(B, starts))
-
-        # Gauss-Newton from every start
+        U0 = _blocked(jax.vmap(lambda Vb, Sb: starts_of(Vb, Sb, Mg)), (V, S), _FIRST_BLOCK).reshape(M, p)
         u1, ok1, st1, _ = pooled_least_squares(fn, gn, U0, spec, jnp.arange(M), M, lanes=_GN_LANES,
                                                max_steps=_GN_STEPS, on_progress=(lambda done, _: _report(done // starts, B)) if progress else None)
         x, c2, ok, steps = best(u1, _blocked(jax.vmap(chi2), (u1, spec), _FIRST_BLOCK), ok1, st1)
+        return U0, x, c2, ok, steps
 
-        # Levenberg-Marquardt from the same starts, for the spectra Gauss-Newton did not fit (the
-        # pending problems first, in `order`, so that its cost follows the number of failures)
+    def errors_only(V, S, state):
+        """The fit of `first`, with its standard errors: where Gauss-Newton fitted every spectrum."""
+        V, S = V.reshape(B, -1), S.reshape(B, -1)
+        _, x, c2, ok, steps = state
+        return finish(x, c2, ok, steps, V, S)
+
+    def second(V, S, state):
+        """Levenberg-Marquardt from the same starts, for the spectra Gauss-Newton did not fit (the
+        pending problems first, in `order`, so that its cost follows the number of failures); the
+        better solution of the two per spectrum, and its standard errors."""
+        V, S = V.reshape(B, -1), S.reshape(B, -1)
+        fn, chi2 = problems(V, S)
+        U0, x, c2, ok, steps = state
         pend = ~ok[spec]
         order = jnp.argsort(~pend, stable=True)
         count = jnp.sum(pend)
@@ -429,15 +467,18 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         c2 = jnp.where(better, c22, c2)
         steps = steps + st2
         ok = ok | ok2
-
-        sd, cov, corr, chi2r, conv, at_b = _blocked(jax.vmap(errors), (x, c2, ok, V, S), _FIRST_BLOCK)
-        return x, sd, cov, corr, chi2r, conv, at_b, steps
+        return finish(x, c2, ok, steps, V, S)
 
     # A small fit is compiled with `QUICK_COMPILE`: on the bundled example (one spectrum, 846
     # residuals) the first call takes 6.9-8.4 s against 11.7 s with XLA's defaults, and a later
     # one 21-30 ms against 9.0 ms.
     options = compiler_options(B * Q * P <= _QUICK_COMPILE_RESIDUALS)
-    return jax.jit(run, compiler_options=options), run, options
+    return tuple(_Stage(f, jax.jit(f, compiler_options=options)) for f in (first, errors_only, second)), options
+
+
+class _Stage(NamedTuple):
+    run: object  # the stage's function
+    jitted: object  # it under `jax.jit`, with the fit's compiler options
 
 
 def _pending_map(f, args, order, count, size, init):

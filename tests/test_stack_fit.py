@@ -110,6 +110,42 @@ def test_recovers_thickness_from_far_starts():
     assert float(nogrid.chi2_reduced[0]) > 10
 
 
+def test_levenberg_marquardt_stage_runs_only_when_needed(monkeypatch):
+    """Gauss-Newton fits these spectra, and the Levenberg-Marquardt stage is not called. With
+    Gauss-Newton cut to one step it fits none: the second stage then fits every spectrum, to the
+    same minimum (tmm-generated data, the same noise draw)."""
+    from jaxoptics import _cache, _stack_fit
+
+    d_true = np.array([80.0, 520.0, 1600.0])
+    sp = _spectra(d_true, seed=3)
+    called = []
+    real_call = _cache.call
+
+    def spy(fn, name, *args, **kwargs):
+        called.append(name.rsplit(".", 1)[-1])
+        return real_call(fn, name, *args, **kwargs)
+
+    monkeypatch.setattr(_cache, "call", spy)
+    ref = jo.fit_stack(_model(), sp)
+    assert called == ["_first_stage", "_errors_stage"]
+    assert np.all(np.asarray(ref.converged)) and np.all(np.asarray(ref.num_steps) <= _stack_fit._GN_STEPS)
+    called.clear()
+    _stack_fit._program.cache_clear()
+    monkeypatch.setattr(_stack_fit, "_GN_STEPS", 1)
+    try:
+        lm = jo.fit_stack(_model(), sp)
+    finally:
+        _stack_fit._program.cache_clear()  # compiled with the patched step count
+    assert called == ["_first_stage", "_second_stage"]
+    assert np.all(np.asarray(lm.converged))
+    assert np.all(np.asarray(lm.num_steps) > 1)  # Gauss-Newton's one step, then Levenberg-Marquardt's
+    for name in lm.names:
+        assert np.allclose(np.asarray(lm[name]), np.asarray(ref[name]), rtol=1e-6, atol=0.01 * np.asarray(ref.stderr_of(name))), name
+    d, sd = np.asarray(lm["oxide.thickness_nm"]), np.asarray(lm.stderr_of("oxide.thickness_nm"))
+    assert np.all(np.abs(d - d_true) < 4 * sd)
+    assert np.allclose(np.asarray(lm.stderr), np.asarray(ref.stderr), rtol=1e-3)
+
+
 def test_standard_errors_are_calibrated():
     """Over 300 noise draws the spread of the fitted thickness and A over their mean standard
     error lies in [0.8, 1.25]."""
