@@ -1,24 +1,25 @@
 """Compiled programs kept between processes: `enable_cache` turns on JAX's persistent
-compilation cache and, beside it, a store of the fits' traced programs (`jax.export`).
+compilation cache and, beside it, a store of the fits' compiled executables.
 
 JAX's persistent compilation cache skips XLA's compilation in a later process, but every new
 process still traces and lowers the program in Python first: for the fits that is most of a warm
 run (`fit --example`: 0.8 s of tracing and 0.2 s of lowering, against 0.1 s to load the compiled
-program). The store keeps the lowered program (StableHLO, serialized by `jax.export`) under a key
-that names everything it was traced from; a later process with the same key deserializes it and
-hands it to `jit`, whose compilation the persistent cache then serves.
+program). The store keeps each fit's compiled executable (`<key2>.xlaexec`, serialized by
+`jax.experimental.serialize_executable`) under a key that names everything it was traced from
+plus the backend's platform and version and the processor's model and instruction-set
+extensions, since XLA compiles for the host's. A later process on the same machine loads it and
+calls it: no tracing, no lowering and no compilation-cache lookup.
 
-Beside each traced program the store keeps its compiled executable for this machine
-(`<key2>.xlaexec`, serialized by `jax.experimental.serialize_executable`, under a key that adds
-the backend's platform and version and the processor's model and instruction-set extensions,
-since XLA compiles for the host's). A later process on the same machine loads that and calls it:
-no tracing, no lowering and no compilation-cache lookup (measured: a warm `fit --example` spends
-0.2 s in its fit against 0.6 s loading the traced program). Where it is missing, foreign or
-damaged, the traced program is loaded, compiled (by the compilation cache) and its executable
-written again. An executable that calls custom kernels other than LAPACK's is not stored (their
-libraries' set-up happens when a program is lowered, which loading skips); for LAPACK's, loading
-sets them up (`_initialize_lapack`). Like JAX's compilation cache, whose entries are also machine
-code, the store trusts its directory: it is the user's own.
+Where no executable is stored, the program is traced, lowered and compiled once, and its
+executable written. Where the backend cannot serialize an executable, the traced program is
+stored instead (`<key>.jaxexport`, StableHLO serialized by `jax.export`): a later process
+deserializes it and hands it to `jit`, whose compilation the persistent cache then serves; a
+process whose executable is missing or foreign but whose traced program is stored does the same
+(and stores its executable). A file that fails to load is deleted and written again. An
+executable that calls custom kernels other than LAPACK's is not stored (their libraries' set-up
+happens when a program is lowered, which loading skips); for LAPACK's, loading sets them up
+(`_initialize_lapack`). Like JAX's compilation cache, whose entries are also machine code, the
+store trusts its directory: it is the user's own.
 
 The key is a SHA-256 of: the jaxoptics source (every `.py` file of the package, so an edited
 checkout never reuses a stale program), the versions of jax and jaxlib, the backend, the
@@ -26,12 +27,11 @@ configuration that changes tracing (`jax_enable_x64`, the default matmul precisi
 promotion and rank promotion modes), the compiler options, the traced function's module and
 name, and a canonical text of its arguments: array leaves by shape, dtype and weak type, every
 other leaf by value. An argument without a stable text (a lambda, a local function, an object
-whose repr holds a memory address) makes the call uncacheable, and it runs as a plain `jit` call;
-so does a program `jax.export` cannot serialize (host callbacks, such as `fit_stack`'s progress
-report). A stored program that fails to load is deleted and traced again.
+whose repr holds a memory address) makes the call uncacheable, and it runs as a plain `jit` call.
+A program that can be stored neither way (host callbacks) is compiled and kept in this process only.
 
-Stored programs are files `<key>.jaxexport` in the compilation cache's directory (JAX's own
-entries end in `-cache`). They are written to a temporary name and renamed, so processes sharing
+Stored files are `<key2>.xlaexec` and `<key>.jaxexport` in the compilation cache's directory (JAX's
+own entries end in `-cache`). They are written to a temporary name and renamed, so processes sharing
 the directory never read a partial file, and the least recently used are deleted beyond
 `MAX_BYTES`.
 """
@@ -77,11 +77,11 @@ def enable_cache(*, path: str | os.PathLike | None = None) -> Path | None:
     `~/.cache/jaxoptics/xla`; `JAXOPTICS_CACHE_DIR=off` leaves the cache off).
 
     A later process that runs the same fits (same shapes and options) then neither traces nor
-    compiles them: `fit_eta` and `fit_stack` load their executables (or, on another machine,
-    their traced programs) from the directory, and JAX's persistent compilation cache, turned on
-    here for every program of the process (JAX's default keeps only those that took a second or
-    more to compile), loads the compiled ones. The directory is capped at 1 GiB of JAX's entries
-    and 256 MiB of the fits' traced programs and executables, least recently used first out; JAX
+    compiles them: `fit_eta` and `fit_stack` load their executables (or, where a backend cannot
+    serialize executables, their traced programs) from the directory, and JAX's persistent
+    compilation cache, turned on here for every program of the process (JAX's default keeps only
+    those that took a second or more to compile), loads the compiled ones. The directory is capped at 1 GiB of JAX's entries
+    and 256 MiB of the fits' executables and traced programs, least recently used first out; JAX
     guards its entries with a file lock and the fits' files are written atomically, so processes
     can share the directory. Deleting it is always safe.
 
@@ -232,19 +232,31 @@ def call(fn, name: str, args: tuple, *, static=None, options=None, fallback):
     if key is None:
         return fallback()
     if key not in _in_process:
-        exe_path = _dir[0] / (_executable_key(key) + _EXE_SUFFIX)
-        loaded = _load_executable(exe_path)
-        if loaded is None:
-            path = _dir[0] / (key + _SUFFIX)
-            exported_tree = _load(path) or _export(fn, name, in_tree, leaves, path)
-            if exported_tree is None:
-                return fallback()
-            exported, out_tree = exported_tree
-            run = jax.jit(exported.call, compiler_options=options)
-            loaded = (_compile_and_store(run, leaves, out_tree, exe_path), out_tree)
-        _in_process[key] = loaded
+        _in_process[key] = _stored_or_compiled(fn, name, in_tree, leaves, key, options)
     run, out_tree = _in_process[key]
     return jax.tree_util.tree_unflatten(out_tree, run(*leaves))
+
+
+def _stored_or_compiled(fn, name, in_tree, leaves, key, options):
+    """`(run, out_tree)` for the program of `key`: its executable loaded from the store; else its
+    traced program loaded from the store and compiled; else `fn` traced and compiled here, once
+    (one trace and one lowering). What is compiled is stored as its executable, or, where that
+    cannot be serialized, as its traced program."""
+    exe_path = _dir[0] / (_executable_key(key) + _EXE_SUFFIX)
+    loaded = _load_executable(exe_path)
+    if loaded is not None:
+        return loaded
+    path = _dir[0] / (key + _SUFFIX)
+    exported_tree = _load(path)
+    if exported_tree is not None:  # stored by a machine or backend without this executable
+        exported, out_tree = exported_tree
+        run, _ = _compile_and_store(jax.jit(exported.call, compiler_options=options), leaves, lambda: out_tree, exe_path)
+        return run, out_tree
+    flat, out_trees = _flat(fn, name, in_tree)
+    run, stored = _compile_and_store(jax.jit(flat, compiler_options=options), leaves, lambda: out_trees[0], exe_path)
+    if not stored:
+        _export(fn, name, in_tree, leaves, path)
+    return run, out_trees[0]
 
 
 _EXE_SUFFIX = ".xlaexec"
@@ -279,21 +291,21 @@ def _executable_key(key: str) -> str:
 
 
 def _compile_and_store(jitted, leaves, out_tree, path: Path):
-    """`jitted` compiled for `leaves`, its executable written to `path`; `jitted` itself if the
-    executable cannot be serialized."""
+    """`(compiled, stored)`: `jitted` compiled for `leaves`, and whether its executable was written
+    to `path` (with the output tree `out_tree()`)."""
     from jax.experimental import serialize_executable
 
+    compiled = jitted.lower(*leaves).compile()
     try:
-        compiled = jitted.lower(*leaves).compile()
         targets = sorted(set(_CUSTOM_CALL.findall(compiled.as_text() or "")))
         if any(not t.startswith("lapack_") for t in targets):
             raise _Uncacheable(f"custom calls {targets}")  # their libraries' set-up is unknown here
-        blob = pickle.dumps((serialize_executable.serialize(compiled), out_tree, targets))
+        blob = pickle.dumps((serialize_executable.serialize(compiled), out_tree(), targets))
     except Exception as e:  # a backend without executable serialization
         _log.debug("executable not stored: %s", e)
-        return jitted
+        return compiled, False
     _write(path, blob)
-    return compiled
+    return compiled, True
 
 
 _CUSTOM_CALL = re.compile(r'custom_call_target="([^"]+)"')
@@ -363,7 +375,9 @@ class _Unpickler(pickle.Unpickler):
         raise pickle.UnpicklingError(f"{module}.{name} is not part of a stored program")
 
 
-def _export(fn, name, in_tree, leaves, path: Path):
+def _flat(fn, name, in_tree):
+    """`fn` on the flat leaves of its arguments, returning the flat leaves of its output (whose
+    tree structure is appended to the list returned with it when traced)."""
     out_tree = []
 
     def flat(*xs):
@@ -373,16 +387,20 @@ def _export(fn, name, in_tree, leaves, path: Path):
         return ys
 
     flat.__name__ = flat.__qualname__ = name.rsplit(".", 1)[-1]  # the program's name in JAX's logs
+    return flat, out_tree
+
+
+def _export(fn, name, in_tree, leaves, path: Path) -> None:
+    flat, out_tree = _flat(fn, name, in_tree)
     try:
         # Custom calls without JAX's cross-version guarantee (LAPACK's QR, ...) are allowed: a
         # stored program is only ever loaded by the jax and jaxlib versions that wrote it (the key)
         exported = jax.export.export(jax.jit(flat), disabled_checks=[jax.export.DisabledSafetyCheck.custom_call("ALL")])(*leaves)
         blob = pickle.dumps((bytes(exported.serialize()), out_tree[0]))
-    except Exception as e:  # not serializable (host callbacks, ...): a plain jit call
+    except Exception as e:  # not serializable (host callbacks, ...): not stored
         _log.debug("not stored: %s", e)
-        return None
+        return
     _write(path, blob)
-    return exported, out_tree[0]
 
 
 def _write(path: Path, blob: bytes) -> None:

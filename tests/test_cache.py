@@ -51,33 +51,52 @@ def test_fit_eta_stored_loaded_and_repaired(tmp_path, monkeypatch, caplog):
     plain = fit()
     _cache.enable_store(tmp_path)
     try:
-        first = fit()  # traced, stored, compiled, its executable stored
-        (path,) = tmp_path.glob("*.jaxexport")
+        first = fit()  # traced and lowered once, compiled, its executable stored
         (exe,) = tmp_path.glob("*.xlaexec")
+        assert not list(tmp_path.glob("*.jaxexport"))  # the traced program only where no executable is
         _cache._in_process.clear()  # as in a new process
         with monkeypatch.context() as m:  # the executable: neither traced nor lowered
+            m.setattr(_cache, "_flat", _fails)
             m.setattr(_cache, "_export", _fails)
             m.setattr(_cache, "_load", _fails)
             loaded = fit()
         exe.write_bytes(b"not an executable")
         _cache._in_process.clear()
-        with monkeypatch.context() as m, caplog.at_level(logging.WARNING, logger="jaxoptics._cache"):
-            m.setattr(_cache, "_export", _fails)  # the traced program, compiled again
-            from_traced = fit()
+        with caplog.at_level(logging.WARNING, logger="jaxoptics._cache"):
+            rebuilt = fit()  # dropped, traced and compiled again, stored again
         assert "unreadable stored executable" in caplog.text
         assert exe.read_bytes() != b"not an executable"
-        path.write_bytes(b"not a stored program")
+        # a backend that cannot serialize executables: the traced program is stored instead, and
+        # a later process compiles it without tracing
+        from jax.experimental import serialize_executable
+
         exe.unlink()
         _cache._in_process.clear()
-        with caplog.at_level(logging.WARNING, logger="jaxoptics._cache"):
+        with monkeypatch.context() as m:
+            m.setattr(serialize_executable, "serialize", _no_serialization)
+            traced = fit()
+            (path,) = tmp_path.glob("*.jaxexport")
+            assert not list(tmp_path.glob("*.xlaexec"))
+            _cache._in_process.clear()
+            m.setattr(_cache, "_flat", _fails)
+            from_traced = fit()
+        path.write_bytes(b"not a stored program")
+        _cache._in_process.clear()
+        caplog.clear()
+        with monkeypatch.context() as m, caplog.at_level(logging.WARNING, logger="jaxoptics._cache"):
+            m.setattr(serialize_executable, "serialize", _no_serialization)
             repaired = fit()
         assert "unreadable stored program" in caplog.text
         assert path.read_bytes() != b"not a stored program"
     finally:
         _cache.disable_store()
-    for r in (first, loaded, from_traced, repaired):
+    for r in (first, loaded, rebuilt, traced, from_traced, repaired):
         _assert_same(plain, r)
     assert np.asarray(plain.converged).all()
+
+
+def _no_serialization(*args, **kwargs):
+    raise NotImplementedError("this backend does not serialize executables")
 
 
 def test_fit_stack_stored_and_loaded(store, monkeypatch):
@@ -87,10 +106,11 @@ def test_fit_stack_stored_and_loaded(store, monkeypatch):
     sp = jo.make_spectra(wl, 70.0, {"psi_deg": q[0], "delta_deg": q[1]})
     model = jo.Sample([jo.Layer(1.46, jo.Free(100.0, 0.0, 600.0), name="film")], jo.material("Si"))
     first = jo.fit_stack(model, sp)
-    assert len(list(store.glob("*.jaxexport"))) == 1
+    assert len(list(store.glob("*.xlaexec"))) == 2  # Gauss-Newton fitted it: its stage and the errors
     _cache._in_process.clear()
     _stack_fit._program.cache_clear()  # nothing of the first call stays in memory
     with monkeypatch.context() as m:
+        m.setattr(_cache, "_flat", _fails)
         m.setattr(_cache, "_export", _fails)
         loaded = jo.fit_stack(model, sp)
     _cache.disable_store()
@@ -240,5 +260,5 @@ def test_warm_process_runs_a_stored_executable_that_calls_lapack(tmp_path):
     run = lambda: subprocess.run([sys.executable, "-c", _WARM_STACK, str(tmp_path)], capture_output=True, text=True)
     first, warm = run(), run()
     assert first.returncode == 0 and warm.returncode == 0, (first.returncode, warm.returncode, warm.stderr[-2000:])
-    assert first.stdout == warm.stdout and warm.stdout.split()[1] == "1", (first.stdout, warm.stdout)
+    assert first.stdout == warm.stdout and warm.stdout.split()[1] == "2", (first.stdout, warm.stdout)  # two stages
     assert float(warm.stdout.split()[0]) == pytest.approx(250.0, abs=1e-6)

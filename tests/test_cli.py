@@ -26,7 +26,7 @@ def test_import_loads_only_what_the_kernels_need():
 
 
 def test_fit_keeps_compiled_programs_between_runs(tmp_path):
-    """A first run fills the cache directory (compiled programs and the fit's traced program), a
+    """A first run fills the cache directory (compiled programs and the fit's executable), a
     second run gives the same answer from it without tracing the fit; `--no-cache` and
     `JAXOPTICS_CACHE_DIR=off` write nothing."""
     cache = tmp_path / "cache"
@@ -34,7 +34,6 @@ def test_fit_keeps_compiled_programs_between_runs(tmp_path):
     first = _run(fit, JAXOPTICS_CACHE_DIR=str(cache), JAX_LOG_COMPILES="1")
     entries = sorted(p.name for p in cache.iterdir())
     assert any(n.endswith("-cache") for n in entries), entries
-    assert any(n.endswith(".jaxexport") for n in entries), entries
     assert any(n.endswith(".xlaexec") for n in entries), entries
     assert "Finished tracing _first" in first.stderr
     second = _run(fit, JAXOPTICS_CACHE_DIR=str(cache), JAX_LOG_COMPILES="1")
