@@ -6,8 +6,8 @@ vectors `(..., 3)`; dtype follows the inputs.
 
 The fitting names (`fit_eta`, `FitResult`, `OneColumnLeastSquares`, `fit_dispersion`,
 `DispersionFit`, `fit_stack`, `StackFit`) are imported on first use. optimistix, equinox and lineax load when a fit
-traces a program (not when `fit_eta` loads its compiled program from the cache); a program that only calls the kernels
-does not load them.
+traces a program (not when `fit_eta` or `fit_stack` loads its compiled program from the cache); a program that only
+calls the kernels does not load them.
 """
 
 import typing as _typing

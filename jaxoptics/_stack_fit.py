@@ -39,19 +39,17 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from . import _cache
 from ._compile import compiler_options
 from ._dispersion import Free, parameter_leaves
-from ._fit_solver import _tol
 from ._fresnel import materialize
-from ._pool import pooled_least_squares
 from ._result import result, static
 from ._sample import Sample, model_quantities
 from ._spectra import Spectra
@@ -245,25 +243,35 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     try:
         hash(key)
     except TypeError:  # a model holding lists or arrays: compiled for this call only
-        (first, errors_only, second), options = _program.__wrapped__(*key)
+        build: Callable[[], tuple] = functools.cache(lambda: _program.__wrapped__(*key))
     else:
-        (first, errors_only, second), options = _program(*key)
+        build = lambda: _program(*key)
 
-    def call(stage, name, args):
+    def stages():
+        with jax.ensure_compile_time_eval():  # built on concrete values, also when called while tracing
+            return build()
+
+    options = _options(B, Q, P)
+
+    def call(i, name, args):
+        # The stages are built (optimistix imported, the grid computed) only when one is traced:
+        # a stage whose executable is in the store (`_cache`) runs without them.
+        run = lambda *a: stages()[i].run(*a)
+        jitted = lambda *a: stages()[i].jitted(*a)
         if progress:  # a host callback, which `jax.export` cannot store
-            return stage.jitted(*args)
-        return _cache.call(stage.run, f"jaxoptics._stack_fit.{name}", args, static=key, options=options,
-                           fallback=lambda: stage.jitted(*args))
+            return jitted(*args)
+        return _cache.call(run, f"jaxoptics._stack_fit.{name}", args, static=key, options=options,
+                           fallback=lambda: jitted(*args))
 
     # Two compiled calls: Gauss-Newton, then the standard errors, or, where Gauss-Newton left some
     # spectrum unfitted (one read from the device decides), Levenberg-Marquardt and the standard
     # errors. The Levenberg-Marquardt program is compiled only when needed: on the bundled example
     # it is not, and a first call compiles about a third less.
-    state = call(first, "_first_stage", (V, S))
+    state = call(0, "_first_stage", (V, S))
     if bool(np.all(np.asarray(state[3]))):
-        out = call(errors_only, "_errors_stage", (V, S, state))
+        out = call(1, "_errors_stage", (V, S, state))
     else:
-        out = call(second, "_second_stage", (V, S, state))
+        out = call(2, "_second_stage", (V, S, state))
     x, sd, cov, corr, chi2r, conv, at_b, steps = out
     shp = lambda a: a.reshape(batch + a.shape[1:])
     return StackFit(tuple(f.name for f in free), shp(x), shp(sd), shp(cov), shp(corr), shp(chi2r), shp(conv),
@@ -272,7 +280,7 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
 
 @functools.lru_cache(maxsize=16)
 def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts, max_grid, max_steps, progress):
-    """The fit for one sample structure, data grid and batch size as two stages (cached: a second
+    """The fit for one sample structure, data grid and batch size as three stages (cached: a second
     `fit_stack` call with the same ones runs without tracing or compiling): `first(V, S) -> state`,
     the global start and Gauss-Newton; `errors_only(V, S, state) -> fit`, its standard errors; and
     `second(V, S, state) -> fit`, Levenberg-Marquardt for the spectra Gauss-Newton did not fit, then
@@ -352,6 +360,11 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         dmax = sum(free[i].upper for i in tidx)
         sub = _grid_subset(lam, nmax_all, dmax)
     starts = max(1, min(int(starts), 1 if grid is None else grid.shape[0]))
+
+    import optimistix as optx
+
+    from ._fit_solver import _tol
+    from ._pool import pooled_least_squares
 
     tol = _tol(dtype)
     gn = optx.GaussNewton(rtol=tol, atol=tol)
@@ -469,11 +482,15 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         ok = ok | ok2
         return finish(x, c2, ok, steps, V, S)
 
-    # A small fit is compiled with `QUICK_COMPILE`: on the bundled example (one spectrum, 846
-    # residuals) the first call takes 6.9-8.4 s against 11.7 s with XLA's defaults, and a later
-    # one 21-30 ms against 9.0 ms.
-    options = compiler_options(B * Q * P <= _QUICK_COMPILE_RESIDUALS)
-    return tuple(_Stage(f, jax.jit(f, compiler_options=options)) for f in (first, errors_only, second)), options
+    options = _options(B, Q, P)
+    return tuple(_Stage(f, jax.jit(f, compiler_options=options)) for f in (first, errors_only, second))
+
+
+def _options(B, Q, P):
+    """The compiler options of a fit of `B` spectra of `Q` quantities at `P` points. A small fit is
+    compiled with `QUICK_COMPILE`: on the bundled example (one spectrum, 846 residuals) the first
+    call takes 6.9-8.4 s against 11.7 s with XLA's defaults, and a later one 21-30 ms against 9.0 ms."""
+    return compiler_options(B * Q * P <= _QUICK_COMPILE_RESIDUALS)
 
 
 class _Stage(NamedTuple):

@@ -19,7 +19,7 @@ def test_import_loads_only_what_the_kernels_need():
     heavy = ("optimistix", "equinox", "lineax", "matplotlib", "scipy", "mpmath", "tqdm", "jaxoptics.tools")
     code = ("import sys, jaxoptics as jo; mods = set(sys.modules); "
             f"print(sorted(m for m in mods if m.split('.')[0] in {heavy!r} or m.startswith('jaxoptics.tools'))); "
-            "jo.fit_eta; print('optimistix' in sys.modules)")
+            "jo.fit_eta, jo.fit_stack; print('optimistix' in sys.modules)")
     out = _run(["-c", code]).stdout.split("\n")
     assert out[0] == "[]", out[0]
     assert out[1] == "False"
