@@ -1,5 +1,6 @@
 """Fit the free parameters of a layered `Sample` to measured `Spectra`: one spectrum or a whole
-map in one compiled call (two when Levenberg-Marquardt is needed, see `fit_stack`).
+map at once, in two compiled calls over the whole map (Gauss-Newton; then the standard errors, or
+Levenberg-Marquardt and the standard errors, see `fit_stack`).
 
 The method, per spectrum:
 
@@ -199,7 +200,7 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
 
     - `sample`: a `Sample` with at least one `Free` parameter.
     - `spectra`: `Spectra` (`load_spectra`, `make_spectra`); leading axes of its values are
-      map sites, all fitted in one compiled call.
+      map sites, all fitted together (each compiled call covers the whole map).
     - `global_start`: search each free thickness with a finite upper bound on a grid first (see
       the module docstring); `False` starts from the `Free` values.
     - `starts`: how many of the best grid points to refine; the lowest chi^2 wins.
