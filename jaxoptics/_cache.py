@@ -80,10 +80,10 @@ def enable_cache(*, path: str | os.PathLike | None = None) -> Path | None:
     compiles them: `fit_eta` and `fit_stack` load their executables (or, where a backend cannot
     serialize executables, their traced programs) from the directory, and JAX's persistent
     compilation cache, turned on here for every program of the process (JAX's default keeps only
-    those that took a second or more to compile), loads the compiled ones. The directory is capped at 1 GiB of JAX's entries
-    and 256 MiB of the fits' executables and traced programs, least recently used first out; JAX
-    guards its entries with a file lock and the fits' files are written atomically, so processes
-    can share the directory. Deleting it is always safe.
+    those that took a second or more to compile), loads the compiled ones. The directory is capped
+    at 1 GiB of JAX's entries and 256 MiB of the fits' executables and traced programs, least
+    recently used first out; JAX guards its entries with a file lock and the fits' files are
+    written atomically, so processes can share the directory. Deleting it is always safe.
 
     The compilation cache is a setting of the whole process (`jax.config`); call this once, at
     the start, before anything is compiled. The command line (`python -m jaxoptics fit`,
