@@ -55,7 +55,10 @@ records the field entering each layer and its ``c``, ``s``, then a second scan t
 tangent fields, linear in the tangents, with the closed forms above. Forward mode runs both; reverse
 mode transposes only the second, which reads the recorded values instead of recomputing the layers'
 exponentials and argument reductions. The magnetic field is carried as ``-i H``, which makes the
-matrices free of the factor ``i`` (fewer complex multiplications in both scans).
+matrices free of the factor ``i`` (fewer complex multiplications in both scans). The recording scan
+has a rule of its own too (`_fields_recorded`: the tangents of the recorded fields and entries come
+from the second scan), so second derivatives use the same closed forms: they are exact where a
+layer's ``k_z`` is 0 as well (tested against mpmath).
 
 The only genuine branch point is that of the last medium (its critical angle, where ``k_z`` of the
 outgoing wave is 0): there the derivative with respect to the angle or the indices is infinite
@@ -333,18 +336,32 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
         # no NaN leaks into gradients.
         ok = _abs2(D) > 0
         D = jnp.where(ok, D, 1)
-        inv_D = _materialize_parts(jnp.conj(D) * (1 / _abs2(D)).astype(D.dtype))
+        # 1/D and 1/|D|^2 through D scaled by a power of 2 (the same bits): near grazing incidence
+        # on such a stack |D| is small, and the derivative of 1/|D|^2, taken as 1/|D|^4, would
+        # underflow to 0 in float32 where |D| < 1e-10 (a NaN gradient)
+        sc = _pow2_scale(D)
+        Dh = D * sc.astype(D.dtype)
+        inv_D = _materialize_parts(jnp.conj(Dh) * (sc / _abs2(Dh)).astype(D.dtype))
         r = jnp.where(ok, r * inv_D, 0)
         t = jnp.where(ok, tnum * G * inv_D, 1)
         # flux through each interface, times the scale factors in front of it (module docs):
         # interfaces 0..m-1 from the scan, the first and the last also directly
-        scale = norm / _abs2(D)
+        scale = norm * (sc * sc) / _abs2(Dh)
         last = jnp.where(ok, _flux(*(v_s if pol == "s" else v_p)) * scale * X_last, 1)
         entering = jnp.where(ok, _flux(B, C) * scale, 1)
         inner = jnp.where(ok[None], flux_hat * scale[None] * X, 1)
         A = inner - jnp.concatenate([inner[1:], last[None]], axis=0)
         out.append(_Group(r, t, _abs2(r), last, entering, A))
     return out[0], out[1]
+
+
+def _pow2_scale(D):
+    """2**-e for the exponent e of the larger part of the complex D (so |D| 2**-e is between 1/2
+    and 1.5), held constant for autodiff; limited to the dtype's normal range."""
+    m = jnp.maximum(jnp.abs(jnp.real(D)), jnp.abs(jnp.imag(D)))
+    lim = jnp.finfo(m.dtype).maxexp - 3
+    e = jnp.clip(jnp.frexp(m)[1], -lim, lim)
+    return jax.lax.stop_gradient(jnp.ldexp(jnp.ones_like(m), -e))
 
 
 class _KzSq(NamedTuple):
@@ -433,14 +450,29 @@ def _fields_scan(nn, dd, k0, ki, n0, v, residuals):
     return out, (ys[3] if residuals else None)
 
 
-@_fields.defjvp
-def _fields_jvp(primals, tangents):
-    """The primal scan, recording; then a scan of the tangent fields from back to front, linear in
-    the tangents: d(M w) = M dw + dM w, with dM from dq, da and d(n^2) through the closed-form
-    entry derivatives (module docstring, point 3). Reverse mode transposes only this second scan."""
-    nn, dd, k0, ki, n0, v = primals
+@jax.custom_jvp
+def _fields_recorded(nn, dd, k0, ki, n0, v):
+    """`_fields_scan` with its residuals: the outputs of `_fields` and, per layer, the field entering
+    it from behind and its entries c, s.
+
+    `_fields_jvp` takes its primal values from here, so that where the rule is itself
+    differentiated (second derivatives) this function's own rule is used instead of autodiff
+    through the scan: JAX applies a custom rule at the next order only to a function the rule
+    calls. Autodiff would go through dk_z/dq = 1/(2 k_z) and through the scale factors g, whose
+    derivatives are infinite where a layer's k_z is 0 (an inner layer at its own critical angle,
+    or every layer of the incident medium's index at grazing incidence), and the Hessian would be
+    NaN there, although no output depends on g."""
+    return _fields_scan(nn, dd, k0, ki, n0, v, True)
+
+
+def _tangents(primals, tangents, phases, residuals, *, recorded: bool):
+    """A scan of the tangent fields from back to front, linear in the tangents: d(M w) = M dw + dM w,
+    with dM from dq, da and d(n^2) through the closed-form entry derivatives (module docstring,
+    point 3), g held constant. Returns the tangents of `_fields`' outputs and, with `recorded`, of
+    the residuals too (per layer: the tangent field entering it from behind, dc, ds)."""
+    nn, dd, k0, ki, n0, _ = primals
     dnn, ddd, dk0, dki, dn0, dv = tangents
-    out, (W_in, C, Sv) = _fields_scan(nn, dd, k0, ki, n0, v, True)
+    W_in, C, Sv = residuals
     (dEs, dHs), (dEp, dHp) = dv
     # the part of dq common to all layers: q = n^2 - n0^2 + ki^2 (either form of `_kt_squared`)
     dm = 2 * (ki * dki - n0 * dn0)
@@ -470,12 +502,31 @@ def _fields_jvp(primals, tangents):
                c * dT2 - nsq * s * dE2 + dc * T2 - dns * E2)
         w2 = _apply(c, s, qs, rho * s, nsq * s, w)
         dfl = lambda E, T, dE, dT: jnp.imag(dE * jnp.conj(T) + E * jnp.conj(dT))
-        return dw2, (dfl(w2[0], w2[1], dw2[0], dw2[1]), dfl(w2[2], w2[3], dw2[2], dw2[3]))
+        ys = (dfl(w2[0], w2[1], dw2[0], dw2[1]), dfl(w2[2], w2[3], dw2[2], dw2[3]))
+        if recorded:
+            ys = ys + ((dw, dc, ds),)
+        return dw2, ys
 
     dv_rot = (dEs, _rot(dHs), dEp, _rot(dHp))
-    dw0, (dfs, dfp) = jax.lax.scan(jax.checkpoint(tstep), dv_rot, (nn, dd, dnn, ddd, W_in, C, Sv), reverse=True)
-    zeros = jax.tree.map(jnp.zeros_like, out[1])
-    return out, (((dw0[0], _unrot(dw0[1])), (dw0[2], _unrot(dw0[3])), dfs, dfp), zeros)
+    dw0, ys = jax.lax.scan(jax.checkpoint(tstep), dv_rot, (nn, dd, dnn, ddd, W_in, C, Sv), reverse=True)
+    zeros = jax.tree.map(jnp.zeros_like, phases)  # (sum of phases, Im phase): no derivative
+    d_out = (((dw0[0], _unrot(dw0[1])), (dw0[2], _unrot(dw0[3])), ys[0], ys[1]), zeros)
+    return (d_out, ys[2]) if recorded else d_out
+
+
+@_fields_recorded.defjvp
+def _fields_recorded_jvp(primals, tangents):
+    out, residuals = _fields_recorded(*primals)
+    d_out, d_residuals = _tangents(primals, tangents, out[1], residuals, recorded=True)
+    return (out, residuals), (d_out, d_residuals)
+
+
+@_fields.defjvp
+def _fields_jvp(primals, tangents):
+    """The primal scan, recording (`_fields_recorded`); then the tangent scan (`_tangents`).
+    Reverse mode transposes only the second."""
+    out, residuals = _fields_recorded(*primals)
+    return out, _tangents(primals, tangents, out[1], residuals, recorded=False)
 
 
 def _layer_cs(delta, a):

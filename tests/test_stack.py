@@ -381,6 +381,90 @@ def test_float32_gradients_finite_at_special_points():
         assert np.all(np.isfinite(np.asarray(g))), name
 
 
+@pytest.mark.parametrize("L", [2, 4])
+def test_float32_gradients_finite_without_any_interface_near_grazing(L):
+    """Every medium of the incident medium's index (no interface), at and near grazing incidence
+    in float32: R = 0 and T = 1, with finite gradients in the indices, thicknesses and cos_i (the
+    stack's divisor is about 1e-10 there; its fourth power is below float32's range)."""
+    c = np.array([0.0, np.cos(np.pi / 2), 1e-30, 1e-10, 1e-6], np.float32)
+    d = np.full(L - 2, 100.0, np.float32)
+
+    def RT(nr, d, c):
+        res = jo.stack(jax.lax.complex(nr, jnp.zeros_like(nr)), d, np.float32(550.0), c)
+        return jnp.stack([res.R_s, res.R_p, res.T_s, res.T_p])
+
+    nr = np.full(L, 1.5, np.float32)
+    out = np.asarray(RT(nr, d, c))
+    np.testing.assert_allclose(out, np.repeat([[0.0], [0.0], [1.0], [1.0]], len(c), axis=1), atol=1e-6)
+    J = jax.jacrev(RT, argnums=(0, 1, 2))(nr, d, c)
+    assert all(np.all(np.isfinite(np.asarray(j))) for j in J)
+
+
+@pytest.mark.parametrize("case", _grad_cases(), ids=lambda c: c[0])
+def test_hessians_match_mpmath(case):
+    """Second derivatives of R_s and R_p in the real parts of the indices after the first medium,
+    the thicknesses, the wavelength and the angle, against mpmath's numerical second derivatives
+    of the 40-digit oracle (the fits' implicit-function gradients take second derivatives)."""
+    name, n, d, wl, th = case
+    n = np.asarray(n, complex)
+    d = np.asarray(d, float)
+    L, m = len(n), len(d)
+    x0 = np.concatenate([n.real[1:], d, [wl, th]])
+    skip = {L - 1 + m + 1} if th == 0.0 else set()  # |cos| has a kink at normal incidence
+
+    def split(x, lib):
+        nn = [n[0]] + [lib.mpc(x[j - 1], n[j].imag) if lib is mp else jax.lax.complex(x[j - 1], n[j].imag)
+                       for j in range(1, L)]
+        return nn, x[L - 1:L - 1 + m], x[L - 1 + m], x[L + m]
+
+    def ours(x):
+        nn, dd, w, t = split(x, jnp)
+        res = jo.stack(jnp.stack([jnp.complex128(nn[0])] + nn[1:]), dd, w, jnp.cos(t))
+        return jnp.stack([res.R_s, res.R_p])
+
+    Hsp = np.asarray(jax.jit(jax.hessian(ours))(jnp.asarray(x0)))
+    for pol, H in zip("sp", Hsp):
+        assert np.all(np.isfinite(H)), (name, pol)
+
+        def ref(*x):
+            nn, dd, w, t = split(list(x), mp)
+            return stack_ref(pol, [mp.mpc(nn[0])] + nn[1:], list(dd), w, t, dps=40, exact=True)[2]
+
+        with mp.workdps(40):
+            for i in range(len(x0)):
+                for j in range(i, len(x0)):
+                    if i in skip or j in skip:
+                        continue
+                    orders = [0] * len(x0)
+                    orders[i] += 1
+                    orders[j] += 1
+                    expect = float(mp.diff(ref, [mp.mpf(v) for v in x0], orders, h=mp.mpf(10) ** -10))
+                    assert abs(H[i, j] - expect) <= 1e-7 * max(1.0, abs(expect)), (name, pol, i, j, H[i, j], expect)
+                    assert H[j, i] == pytest.approx(H[i, j], rel=1e-9, abs=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_hessians_finite_at_special_points(dtype):
+    """Finite Hessians of R and T where every medium has the incident medium's index, at grazing
+    incidence (no interface: every layer's k_z is 0), and in float32 at the special points too
+    (`test_hessians_match_mpmath` checks them in float64)."""
+    cases = [(name, n, d, wl, np.cos(th)) for name, n, d, wl, th in _grad_cases()] if dtype == np.float32 else []
+    # exact and near grazing incidence (cos(pi/2) in float64 is 6.1e-17), one batch. Near it the
+    # second derivatives in the indices grow like 1/cos_i^4, beyond float32's range at 1e-10.
+    near = [np.cos(np.pi / 2), 1e-10] if dtype == np.float64 else []
+    cases += [("index matched, grazing", [1.5, 1.5, 1.5, 1.5], [100.0, 50.0], 550.0, [0.0] + near)]
+    cdt = np.complex64 if dtype == np.float32 else np.complex128
+    for name, n, d, wl, c in cases:
+        n = np.asarray(n, cdt)
+
+        def RT(nr, d, c):
+            res = jo.stack(jax.lax.complex(nr, jnp.asarray(n.imag)), d, dtype(wl), c)
+            return jnp.stack([res.R_s, res.R_p, res.T_s, res.T_p])
+
+        H = jax.jit(jax.hessian(RT, argnums=(0, 1, 2)))(jnp.asarray(n.real), jnp.asarray(d, dtype), jnp.asarray(c, dtype))
+        assert all(np.all(np.isfinite(np.asarray(h))) for h in jax.tree.leaves(H)), name
+
+
 # ---- API, dtype, bad input -----------------------------------------------------------------------
 
 
