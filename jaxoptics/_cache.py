@@ -253,9 +253,10 @@ def _stored_or_compiled(fn, name, in_tree, leaves, key, options):
         run, _ = _compile_and_store(jax.jit(exported.call, compiler_options=options), leaves, lambda: out_tree, exe_path)
         return run, out_tree
     flat, out_trees = _flat(fn, name, in_tree)
-    run, stored = _compile_and_store(jax.jit(flat, compiler_options=options), leaves, lambda: out_trees[0], exe_path)
+    jitted = jax.jit(flat, compiler_options=options)
+    run, stored = _compile_and_store(jitted, leaves, lambda: out_trees[0], exe_path)
     if not stored:
-        _export(fn, name, in_tree, leaves, path)
+        _export(jitted, out_trees[0], leaves, path)  # the same `jit`: its trace is reused
     return run, out_trees[0]
 
 
@@ -390,13 +391,14 @@ def _flat(fn, name, in_tree):
     return flat, out_tree
 
 
-def _export(fn, name, in_tree, leaves, path: Path) -> None:
-    flat, out_tree = _flat(fn, name, in_tree)
+def _export(jitted, out_tree, leaves, path: Path) -> None:
+    """Store the traced program of `jitted` (a `jit` of a `_flat` function already lowered for
+    `leaves`, so JAX's trace cache serves the trace) with its output tree."""
     try:
         # Custom calls without JAX's cross-version guarantee (LAPACK's QR, ...) are allowed: a
         # stored program is only ever loaded by the jax and jaxlib versions that wrote it (the key)
-        exported = jax.export.export(jax.jit(flat), disabled_checks=[jax.export.DisabledSafetyCheck.custom_call("ALL")])(*leaves)
-        blob = pickle.dumps((bytes(exported.serialize()), out_tree[0]))
+        exported = jax.export.export(jitted, disabled_checks=[jax.export.DisabledSafetyCheck.custom_call("ALL")])(*leaves)
+        blob = pickle.dumps((bytes(exported.serialize()), out_tree))
     except Exception as e:  # not serializable (host callbacks, ...): not stored
         _log.debug("not stored: %s", e)
         return

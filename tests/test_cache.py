@@ -74,7 +74,9 @@ def test_fit_eta_stored_loaded_and_repaired(tmp_path, monkeypatch, caplog):
         _cache._in_process.clear()
         with monkeypatch.context() as m:
             m.setattr(serialize_executable, "serialize", _no_serialization)
+            traces = _count_traces(m)
             traced = fit()
+            assert traces and len(traces) == len(set(traces)), traces  # each program traced once
             (path,) = tmp_path.glob("*.jaxexport")
             assert not list(tmp_path.glob("*.xlaexec"))
             _cache._in_process.clear()
@@ -93,6 +95,25 @@ def test_fit_eta_stored_loaded_and_repaired(tmp_path, monkeypatch, caplog):
     for r in (first, loaded, rebuilt, traced, from_traced, repaired):
         _assert_same(plain, r)
     assert np.asarray(plain.converged).all()
+
+
+def _count_traces(m) -> list:
+    """Patch `_cache._flat` so that each trace of a program appends its name to the returned list."""
+    traces: list = []
+    real = _cache._flat
+
+    def counting(fn, name, in_tree):
+        flat, out_tree = real(fn, name, in_tree)
+
+        def counted(*xs):
+            traces.append(name)
+            return flat(*xs)
+
+        counted.__name__ = counted.__qualname__ = flat.__name__
+        return counted, out_tree
+
+    m.setattr(_cache, "_flat", counting)
+    return traces
 
 
 def _no_serialization(*args, **kwargs):
