@@ -404,7 +404,8 @@ def test_float32_gradients_finite_without_any_interface_near_grazing(L):
 def test_hessians_match_mpmath(case):
     """Second derivatives of R_s and R_p in the real parts of the indices after the first medium,
     the thicknesses, the wavelength and the angle, against mpmath's numerical second derivatives
-    of the 40-digit oracle (the fits' implicit-function gradients take second derivatives)."""
+    of the 40-digit oracle (Newton-type solvers and implicit-function gradients of a user's fit
+    through `stack` take them)."""
     name, n, d, wl, th = case
     n = np.asarray(n, complex)
     d = np.asarray(d, float)
