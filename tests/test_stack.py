@@ -466,6 +466,95 @@ def test_hessians_finite_at_special_points(dtype):
         assert all(np.all(np.isfinite(np.asarray(h))) for h in jax.tree.leaves(H)), name
 
 
+def _incoherent_cases():
+    """(name, n, d, wl, cos_i, smooth) of five media whose middle inner layer is incoherent: three
+    smooth points (an absorbing incoherent layer between films; TIR into the exit medium; a
+    lossless incoherent layer on a metal) and the special points where finite differences do not
+    apply (a film and the incoherent layer each at its own critical angle, the wave evanescent in
+    the incoherent layer, every medium of the incident index at grazing incidence)."""
+    s = 1.5 * np.sin(0.7)
+    return [
+        ("absorbing incoherent layer", [1.0, 1.46, 2.0 + 0.01j, 1.38 + 0.002j, 1.52], [100.0, 3e4, 60.0], 550.0, np.cos(0.5), True),
+        ("exit TIR", [1.6, 1.38, 1.75 + 0.001j, 2.1, 1.0], [90.0, 5e4, 40.0], 600.0, np.cos(1.2), True),
+        ("lossless incoherent layer", [1.0, 1.7, 1.45, 2.3, 3.9 + 0.02j], [120.0, 2e4, 70.0], 480.0, np.cos(0.9), True),
+        ("film at its critical angle", [1.5, s, 1.45 + 0.001j, 1.3, 1.0], [120.0, 5e4, 80.0], 550.0, np.cos(0.7), False),
+        ("incoherent layer at its critical angle", [1.5, 1.45, s, 1.3, 1.52], [120.0, 5e4, 80.0], 550.0, np.cos(0.7), False),
+        ("evanescent incoherent layer", [1.5, 1.45, 1.0, 1.3, 1.52], [120.0, 5e4, 80.0], 550.0, np.cos(1.2), False),
+        ("index matched, grazing", [1.5] * 5, [100.0, 5e4, 50.0], 550.0, 0.0, False),
+    ]
+
+
+def _richardson_derivatives(f, x0, scale):
+    """Gradient and Hessian of `f` (vector-valued) at `x0` in the coordinates `u` with
+    `x = x0 + scale * u`: fourth-order central differences at steps 5e-3 and 2.5e-3, combined by
+    Richardson extrapolation (truncation error of order h^6; rounding about 1e-16 / h^2)."""
+    k = len(x0)
+    F = lambda u: f(x0 + scale * u)
+    e = np.eye(k)
+    c1 = {-2: 1 / 12, -1: -2 / 3, 1: 2 / 3, 2: -1 / 12}
+    c2 = {-2: -1 / 12, -1: 4 / 3, 0: -5 / 2, 1: 4 / 3, 2: -1 / 12}
+
+    def at(h):
+        G = np.array([sum(w * F(a * h * e[i]) for a, w in c1.items()) / h for i in range(k)])
+        H = np.zeros((k, k) + G.shape[1:])
+        for i in range(k):
+            H[i, i] = sum(w * F(a * h * e[i]) for a, w in c2.items()) / h**2
+            for j in range(i + 1, k):
+                H[i, j] = H[j, i] = sum(wa * wb * F(a * h * e[i] + b * h * e[j])
+                                        for a, wa in c1.items() for b, wb in c1.items()) / h**2
+        return G, H
+
+    (G1, H1), (G2, H2) = at(5e-3), at(2.5e-3)
+    return (16 * G2 - G1) / 15, (16 * H2 - H1) / 15
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_incoherent_derivatives(dtype):
+    """First and second derivatives of R_s, T_s, R_p, T_p of stacks with an incoherent layer, in
+    the real parts of the indices after the first medium, the thicknesses, the wavelength and
+    cos_i: at the smooth points (float64) against finite differences of tmm's `inc_tmm`,
+    extrapolated; finite at every point in both dtypes. Derivatives are compared in coordinates
+    scaled to each variable's own scale (indices 1, films a sixth of a wave in them, the thick
+    layer 5 um, the wavelength 50 nm, cos_i 0.3), in which they are of order one."""
+    cases = _incoherent_cases()
+    cdt = np.complex64 if dtype == np.float32 else np.complex128
+    x0 = np.array([np.concatenate([np.real(n[1:]), d, [wl, c]]) for _, n, d, wl, c, _ in cases], dtype)
+    n_imag = np.array([np.imag(n[1:]) for _, n, _, _, _, _ in cases], dtype)
+    n0 = np.array([n[0] for _, n, _, _, _, _ in cases], cdt)
+    scale = np.array([[1.0] * 4 + [wl / (2 * np.pi * n[1].real), 5e3, wl / (2 * np.pi * n[3].real), 50.0, 0.3]
+                      for _, n, _, wl, _, _ in cases], dtype)
+
+    def ours(u, x0, scale, n_imag, n0):
+        x = x0 + scale * u
+        n = jnp.concatenate([n0[None], jax.lax.complex(x[:4], n_imag)])
+        res = jo.stack(n, x[4:7], x[7], x[8], incoherent=(1,))
+        return jnp.stack([res.R_s, res.T_s, res.R_p, res.T_p])
+
+    args = (np.zeros_like(x0), x0, scale, n_imag, n0)
+    # forward over forward: the same derivative rule at both orders, and a far quicker compile
+    # than forward over reverse through the scans
+    J = np.asarray(jax.jit(jax.vmap(jax.jacfwd(ours)))(*args))
+    H = np.asarray(jax.jit(jax.vmap(jax.jacfwd(jax.jacfwd(ours))))(*args))
+    for k, (name, n, d, wl, c, smooth) in enumerate(cases):
+        assert np.all(np.isfinite(J[k])) and np.all(np.isfinite(H[k])), name
+        if dtype != np.float64 or not smooth:
+            continue
+
+        def tmm_RT(x):
+            nn = [n[0]] + [complex(a, b) for a, b in zip(x[:4], np.imag(n[1:]))]
+            out = []
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                for pol in "sp":
+                    r = tmm.inc_tmm(pol, nn, [np.inf, *x[4:7], np.inf], ["i", "c", "i", "c", "i"], np.arccos(x[8]), x[7])
+                    out += [r["R"], r["T"]]
+            return np.array(out)
+
+        G, Hf = _richardson_derivatives(tmm_RT, x0[k].astype(np.float64), scale[k].astype(np.float64))
+        np.testing.assert_allclose(J[k].T, G, atol=1e-9, rtol=0, err_msg=name)
+        np.testing.assert_allclose(np.moveaxis(H[k], 0, -1), Hf, atol=1e-7, rtol=0, err_msg=name)
+
+
 # ---- API, dtype, bad input -----------------------------------------------------------------------
 
 
