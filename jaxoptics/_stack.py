@@ -330,7 +330,7 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
             D = n0sq * B + kz0 * C
             r = (kz0 * C - n0sq * B)
             tnum = 2 * n0 * ne * kz0
-        norm = _flux_norm(pol, kz0, n0sq, real_incident)
+        nu, f = _flux_norm(pol, kz0, n0sq, real_incident)
         # D = 0 only at grazing incidence on a stack with no interface at all (every medium of the
         # incident medium's index): r = 0, t = 1, as `fresnel` there. The divisor is replaced too, so
         # no NaN leaks into gradients.
@@ -346,7 +346,7 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
         t = jnp.where(ok, tnum * G * inv_D, 1)
         # flux through each interface, times the scale factors in front of it (module docs):
         # interfaces 0..m-1 from the scan, the first and the last also directly
-        scale = norm * (sc * sc) / _abs2(Dh)
+        scale = nu * (sc * f * sc) / _abs2(Dh)  # the powers of 2 first: no intermediate overflow
         last = jnp.where(ok, _flux(*(v_s if pol == "s" else v_p)) * scale * X_last, 1)
         entering = jnp.where(ok, _flux(B, C) * scale, 1)
         inner = jnp.where(ok[None], flux_hat * scale[None] * X, 1)
@@ -540,19 +540,26 @@ def _layer_cs(delta, a):
 
 
 def _flux_norm(pol, kz0, n0sq, real_incident):
-    """4 / (incident flux per |D|^2): the flux Re(E H*) at an interface times this over |D|^2 is
-    the fraction of the incident power crossing it."""
+    """`(nu, f)`: 4 / (incident flux per |D|^2) is `nu * f`, with `f` a power of 2 held constant for
+    autodiff; the flux Re(E H*) at an interface times it over |D|^2 is the fraction of the incident
+    power crossing it."""
     if real_incident:  # kz0, n0 real: 4 kz0 (s) or 4 n0^2 kz0 (p), 0 at grazing incidence
-        return 4 * jnp.real(kz0) * (1 if pol == "s" else jnp.real(n0sq))
+        return 4 * jnp.real(kz0) * (1 if pol == "s" else jnp.real(n0sq)), 1
     # an incoherent absorbing layer lighting the group: tmm's Re(n cos) normalization. Where the
     # wave in that layer is evanescent it carries no power toward the group: the fluxes are 0 (and
     # no light reaches such a layer either: its forward T is 0 too).
+    # The quotient is of order |kz0| and is formed from kz0 scaled by a power of 2 to order one
+    # (the same bits): its derivative, taken as num / den^2, times the large cotangent it receives
+    # near grazing incidence (where it multiplies 1 / |D|^2) would overflow in float32 (an infinite
+    # gradient for |kz0| below about 1e-14).
+    sk = _pow2_scale(kz0)
+    k = kz0 * sk.astype(kz0.dtype)
     if pol == "s":
-        num, den = 4 * _abs2(kz0), jnp.real(kz0)
+        num, den = 4 * _abs2(k), jnp.real(k)
     else:
-        num, den = 4 * _abs2(n0sq) * _abs2(kz0), jnp.real(kz0 * jnp.conj(n0sq))
+        num, den = 4 * _abs2(n0sq) * _abs2(k), jnp.real(k * jnp.conj(n0sq))
     pos = den > 0
-    return jnp.where(pos, num / jnp.where(pos, den, 1), 0)
+    return jnp.where(pos, num / jnp.where(pos, den, 1), 0), 1 / sk
 
 
 def _flux(E, H):

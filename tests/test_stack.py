@@ -381,16 +381,18 @@ def test_float32_gradients_finite_at_special_points():
         assert np.all(np.isfinite(np.asarray(g))), name
 
 
-@pytest.mark.parametrize("L", [2, 4])
-def test_float32_gradients_finite_without_any_interface_near_grazing(L):
+@pytest.mark.parametrize("L,inc", [(2, ()), (4, ()), (3, (0,)), (5, (1,)), (5, (0, 2))])
+def test_float32_gradients_finite_without_any_interface_near_grazing(L, inc):
     """Every medium of the incident medium's index (no interface), at and near grazing incidence
-    in float32: R = 0 and T = 1, with finite gradients in the indices, thicknesses and cos_i (the
-    stack's divisor is about 1e-10 there; its fourth power is below float32's range)."""
-    c = np.array([0.0, np.cos(np.pi / 2), 1e-30, 1e-10, 1e-6], np.float32)
+    in float32, coherent and with incoherent layers: R = 0 and T = 1, with finite gradients in the
+    indices, thicknesses and cos_i (the stack's divisor is about 1e-10 there, its fourth power
+    below float32's range; an incoherent layer's flux normalization is of order cos_i, and its
+    derivative receives a cotangent of order 1 / cos_i^2)."""
+    c = np.array([0.0, np.cos(np.pi / 2), 1e-30, 1e-18, 1e-14, 1e-10, 1e-6], np.float32)
     d = np.full(L - 2, 100.0, np.float32)
 
     def RT(nr, d, c):
-        res = jo.stack(jax.lax.complex(nr, jnp.zeros_like(nr)), d, np.float32(550.0), c)
+        res = jo.stack(jax.lax.complex(nr, jnp.zeros_like(nr)), d, np.float32(550.0), c, incoherent=inc)
         return jnp.stack([res.R_s, res.R_p, res.T_s, res.T_p])
 
     nr = np.full(L, 1.5, np.float32)
