@@ -33,11 +33,18 @@ and the stack is the product of these applied to the field of the outgoing wave,
 
 1. **No overflow.** ``cos(delta)`` and ``sin(delta)`` grow like ``exp(Im delta)`` in an absorbing
    or evanescent layer (plain transfer matrices overflow for ``d k / lambda`` beyond about 100 in
-   float64, 10 in float32). Each layer's matrix is therefore multiplied by ``g = exp(i delta)``,
-   ``|g| <= 1`` on the decaying branch ``Im k_z >= 0``; its entries become ``(1 + P) / 2`` and
-   ``a exprel(2 i delta)`` with ``P = g**2``, all bounded, and ``P`` underflows harmlessly to 0.
+   float64, 10 in float32). Each layer's matrix is therefore multiplied by
+   ``g = |exp(i delta)| = exp(-Im delta)``, ``<= 1`` on the decaying branch ``Im k_z >= 0``; its
+   entries become ``(cos x (1 + e) - i sin x (1 - e)) / 2`` and the like (``delta = x + i y``,
+   ``e = exp(-2 y)``, `_layer_cs`), all bounded, and ``e`` underflows harmlessly to 0.
    Reflection amplitudes are ratios and do not see the factors; transmission and the flux at each
    interface are multiplied back by the products of ``g`` in front of them, which are <= 1.
+   The factor is real so that a lossless layer's matrix stays real: with lossless layers and an
+   evanescent wave in the last medium (total internal reflection) the fields then keep their
+   phases exactly, every flux is an exact 0 and ``R = 1`` to a few ulps. (With the complex factor
+   ``exp(i delta)`` rounding mixes the phases: near grazing incidence, where the stack is a
+   cavity of high finesse between the first interface and the last, float32 gave ``R`` of such a
+   stack off by up to 4% and absorption in lossless layers.)
 2. **No removable singularities.** The Abeles/Rouard recursion on interface coefficients
    ``r_{j,j+1}`` divides by ``k_{z,j} + k_{z,j+1}`` and gives 0/0 (NaN) when an inner layer is at
    its own critical angle (``k_{z,j} = 0``, so ``r = +-1`` on both of its faces). The matrix
@@ -193,16 +200,6 @@ _R_COEFFS = tuple(float((-1) ** n * 2 ** (2 * n) * b / (2 * math.factorial(2 * n
                   for n, b in enumerate(_bernoulli_even(_DS_SERIES_TERMS)) if n >= 1)
 
 
-def _exprel_from(e, z):
-    """(exp(z) - 1) / z from e = expm1(z): `_expm1_imag` is within a few ulps of mpmath (tested),
-    so the quotient is too; 1 at z = 0.
-    The division is written as e conj(z) / |z|^2 (one real division; XLA's complex division costs
-    3x a multiplication on the CPU)."""
-    z2 = _abs2(z)
-    nz = z2 > 0
-    return jnp.where(nz, e * jnp.conj(z) * (1 / jnp.where(nz, z2, 1)).astype(z.dtype), 1)
-
-
 def _sin_cosm1(x):
     """(sin x, cos x - 1) for |x| <= pi/4 by their Taylor series (truncation below 1e-19 relative
     in float64 with 8 and 9 terms, 1e-9 in float32 with 4 and 5)."""
@@ -226,20 +223,17 @@ _PIO2_SPLIT_F64 = (1.57079632673412561417e+00, 6.07710050630396597660e-11, 2.022
 _PIO2_SPLIT_F32 = (1.5703125, 4.837512969970703125e-4, 7.549789415861596e-8, 5.390302953474238e-15)
 
 
-def _expm1_imag(x, y):
-    """expm1(x + i y) for real x <= 0 (or small) and y of any size, as a complex number.
+def _sincos(y):
+    """(sin y, cos y) for real y of any size, with one argument reduction, vectorized.
 
     XLA's float64 sine and cosine on the CPU cost about 7 ns per element (exp: 0.5 ns; measured at
-    10^6 elements), and its complex `expm1` evaluates both. Here the argument is reduced once,
-    vectorized:
-    `k = round(y / (pi/2))` and `r = y - k pi/2` with pi/2 split in four parts whose leading ones
-    have trailing zero bits (Cody and Waite; fdlibm's and Cephes' constants), so the products with
-    `k` are exact for `|k| < 2**20` (float64) or `2**13` (float32) and `r` is accurate to an ulp
-    even where it is tiny (y near a multiple of pi/2); sin and cos of `r` come from one
-    polynomial each, rotated by `k mod 4`. ``Re = expm1(x) cos y + (cos y - 1)``: no cancellation
-    for small `x` and `y` (both terms <= 0 there). Within 4 ulps of mpmath (tested); beyond
-    `|y| = 1.6e6` (float64) or `1.3e4` (float32) the reduction adds an error of order ulp(y), as
-    large as the rounding of `y` itself.
+    10^6 elements) and reduce the argument once each. Here `k = round(y / (pi/2))` and
+    `r = y - k pi/2` with pi/2 split in four parts whose leading ones have trailing zero bits (Cody
+    and Waite; fdlibm's and Cephes' constants), so the products with `k` are exact for
+    `|k| < 2**20` (float64) or `2**13` (float32) and `r` is accurate to an ulp even where it is tiny
+    (y near a multiple of pi/2); sin and cos of `r` come from one polynomial each, rotated by
+    `k mod 4`. Within 2 ulps of mpmath (tested); beyond `|y| = 1.6e6` (float64) or `1.3e4`
+    (float32) the reduction adds an error of order ulp(y), as large as the rounding of `y` itself.
     """
     k = jnp.round(y * (2 / math.pi))
     split = _PIO2_SPLIT_F64 if y.dtype == jnp.float64 else _PIO2_SPLIT_F32
@@ -251,8 +245,7 @@ def _expm1_imag(x, y):
     cs = 1 + cm1
     sin_y = jnp.where(m == 0, sn, jnp.where(m == 1, cs, jnp.where(m == 2, -sn, -cs)))
     cos_y = jnp.where(m == 0, cs, jnp.where(m == 1, -sn, jnp.where(m == 2, -cs, sn)))
-    cosm1_y = jnp.where(m == 0, cm1, cos_y - 1)
-    return jax.lax.complex(jnp.expm1(x) * cos_y + cosm1_y, jnp.exp(x) * sin_y)
+    return sin_y, cos_y
 
 
 def _decaying_root(q):
@@ -311,14 +304,15 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
         # the product of the scale factors, and |the product in front of interface k|^2 from the
         # prefix sums of the attenuations (not as total minus suffix: with 1e5 nepers in a thick
         # absorber behind, that difference loses everything in float32)
-        G = jnp.exp(1j * S_all)  # (for the amplitudes t only: dropped from the program without them)
-        X_last = jnp.exp(-2 * jnp.imag(S_all))  # |G|^2, without the sine and cosine of Re(S)
+        G = jnp.exp(-jnp.imag(S_all))  # (for the amplitudes t only: dropped from the program without them)
+        X_last = jnp.exp(-2 * jnp.imag(S_all))  # G^2
         prefix = jnp.concatenate([jnp.zeros_like(im_phase[:1]), jnp.cumsum(im_phase[:-1], axis=0)], axis=0)
         X = jnp.exp(-2 * prefix)
     else:
         w0s, w0p = v_s, v_p
         fs = fp = jnp.zeros((0,) + jnp.shape(kze), jnp.real(kze).dtype)
-        G, X_last, X = one, jnp.ones(jnp.shape(kze), jnp.real(kze).dtype), fs
+        G = X_last = jnp.ones(jnp.shape(kze), jnp.real(kze).dtype)
+        X = fs
     out = []
     n0sq = n0 * n0
     for pol, (B, C), flux_hat in (("s", w0s, fs), ("p", w0p, fp)):
@@ -343,7 +337,7 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
         Dh = D * sc.astype(D.dtype)
         inv_D = _materialize_parts(jnp.conj(Dh) * (sc / _abs2(Dh)).astype(D.dtype))
         r = jnp.where(ok, r * inv_D, 0)
-        t = jnp.where(ok, tnum * G * inv_D, 1)
+        t = jnp.where(ok, _rmul(G, tnum * inv_D), 1)
         # flux through each interface, times the scale factors in front of it (module docs):
         # interfaces 0..m-1 from the scan, the first and the last also directly
         scale = nu * (sc * f * sc) / _abs2(Dh)  # the powers of 2 first: no intermediate overflow
@@ -530,13 +524,32 @@ def _fields_jvp(primals, tangents):
 
 
 def _layer_cs(delta, a):
-    """c = g cos(delta), s = g sin(delta) / k_z with g = exp(i delta), delta = a k_z (a real)."""
-    z = _unrot(2 * delta)
+    """c = g cos(delta), s = g sin(delta) / k_z with g = |exp(i delta)| = exp(-Im delta),
+    delta = a k_z (a real, Im delta >= 0).
+
+    With ``delta = x + i y``: ``g cos(delta) = cos x (1 + e) / 2 - i sin x (1 - e) / 2`` and
+    ``g sin(delta) = sin x (1 + e) / 2 + i cos x (1 - e) / 2``, ``e = exp(-2 y)``, ``1 - e`` as
+    ``-expm1(-2 y)``: every part to a few ulps, and no part cancels. For a real ``delta`` (a
+    lossless layer, propagating) or an imaginary one (lossless, evanescent) the imaginary parts of
+    ``c``, ``s / a`` and ``delta`` are exact zeros, so a lossless stack's matrices are real and
+    conserve the flux exactly (module docstring, point 1)."""
+    x, y = jnp.real(delta), jnp.imag(delta)
     # stored once for the four products of the step that read c and s (XLA would otherwise
     # recompute the argument reduction and the polynomials in each of their fused loops); c and s
-    # themselves are a few multiplications from it, cheaper to recompute than to store
-    e = _materialize_parts(_expm1_imag(jnp.real(z), jnp.imag(z)))
-    return 1 + 0.5 * e, _rmul(a, _exprel_from(e, z))
+    # themselves are a few multiplications from them, cheaper to recompute than to store
+    sn, cs = _sincos(x)
+    om = -jnp.expm1(-2 * y)  # 1 - e
+    sn, cs, om = (_materialize_parts(v) for v in (sn, cs, om))
+    op = 2 - om  # 1 + e, exact
+    c = jax.lax.complex(0.5 * cs * op, -0.5 * sn * om)
+    g_sin = jax.lax.complex(0.5 * sn * op, 0.5 * cs * om)
+    # s = a g sin(delta) / delta, one real division; a (the limit) for |delta| < 2**-60 (where
+    # sin(delta) / delta and g are 1 to rounding in float64, and |delta|^2 and the product below
+    # stay far above float32's smallest normal number)
+    d2 = _abs2(delta)
+    big = d2 >= 2.0**-120
+    ratio = g_sin * jnp.conj(delta) * (1 / jnp.where(big, d2, 1)).astype(delta.dtype)
+    return c, _rmul(a, jnp.where(big, ratio, 1))
 
 
 def _flux_norm(pol, kz0, n0sq, real_incident):

@@ -698,23 +698,58 @@ def test_large_batches_in_blocks_agree_with_tmm(monkeypatch, inc):
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_expm1_of_the_phase_against_mpmath(dtype):
-    """The layer's exp(2 i delta) - 1 with one argument reduction (`_expm1_imag`) against mpmath:
-    a few ulps (relative to |expm1|) for decays from 0 to 100 nepers and phases from 1e-12 to 1e6
-    radians, including phases at multiples of pi/2 where the result is small."""
-    from jaxoptics._stack import _expm1_imag
+def test_layer_entries_against_mpmath(dtype):
+    """A layer's scaled matrix entries (`_layer_cs`: c = g cos(delta), s = g a sin(delta) / delta,
+    g = exp(-Im delta)) against mpmath: within 4 ulps of their modulus for decays from 0 to 100
+    nepers and phases from 1e-12 to 1e6 radians (1e4 in float32), at multiples of pi/2, and for
+    |delta| down to 1e-30; and exactly real where delta is real or imaginary (lossless layers)."""
+    from jaxoptics._stack import _layer_cs
 
     rng = np.random.default_rng(3)
     K = 3000
-    x = np.concatenate([-(10.0 ** rng.uniform(-12, 2, K)), np.zeros(200), -(10.0 ** rng.uniform(-12, -6, 200))])
-    y = np.concatenate([rng.choice([-1, 1], K) * 10.0 ** rng.uniform(-12, 6 if dtype == np.float64 else 4, K),
-                        np.pi / 2 * rng.integers(-4000, 4000, 200), np.pi / 2 * rng.integers(-100, 100, 200)])
-    x, y = x.astype(dtype), y.astype(dtype)
-    got = np.asarray(jax.jit(_expm1_imag)(jnp.asarray(x), jnp.asarray(y)))
+    y = np.concatenate([10.0 ** rng.uniform(-12, 2, K), np.zeros(600), 10.0 ** rng.uniform(-12, 1, 600),
+                        np.zeros(100), 10.0 ** rng.uniform(-30, -12, 100)])
+    x = np.concatenate([rng.choice([-1, 1], K) * 10.0 ** rng.uniform(-12, 6 if dtype == np.float64 else 4, K),
+                        np.pi / 2 * rng.integers(-4000, 4000, 200), np.pi / 2 * rng.integers(-100, 100, 200),
+                        rng.uniform(-50, 50, 200), np.zeros(600), 10.0 ** rng.uniform(-30, -12, 100),
+                        np.zeros(100)])
+    a = 10.0 ** rng.uniform(-3, 3, len(x))
+    x, y, a = x.astype(dtype), y.astype(dtype), a.astype(dtype)
+    delta = jax.lax.complex(jnp.asarray(x), jnp.asarray(y))
+    c, s = (np.asarray(v) for v in jax.jit(_layer_cs)(delta, jnp.asarray(a)))
     with mp.workdps(40):
-        ref = np.array([complex(mp.expm1(mp.mpc(float(a), float(b)))) for a, b in zip(x, y)])
-    err = np.abs(got - ref) / np.abs(ref) / np.finfo(dtype).eps
-    assert err.max() < 4, (err.max(), x[np.argmax(err)], y[np.argmax(err)])
+        ref_c, ref_s = [], []
+        for xi, yi, ai in zip(x, y, a):
+            d = mp.mpc(float(xi), float(yi))
+            g = mp.exp(-d.imag)
+            ref_c.append(complex(g * mp.cos(d)))
+            ref_s.append(complex(g * ai * (mp.sin(d) / d if d != 0 else 1)))
+    eps = np.finfo(dtype).eps
+    for got, ref in ((c, np.array(ref_c)), (s, np.array(ref_s))):
+        err = np.abs(got - ref) / np.abs(ref) / eps
+        assert err.max() < 4, (err.max(), x[np.argmax(err)], y[np.argmax(err)])
+    lossless = (x == 0) | (y == 0)
+    assert lossless.sum() >= 1400
+    assert np.all(c.imag[lossless] == 0) and np.all(s.imag[lossless] == 0)
+
+
+def test_lossless_stack_under_tir_reflects_everything():
+    """A stack of lossless layers lit near grazing incidence, with an evanescent wave in the last
+    medium: R = 1 and no absorption in either dtype, to a few ulps, across the cavity resonances
+    that the first interface and the last form there (their finesse grows like 1 / cos_i; the
+    fields inside are then large against the incident one)."""
+    n = np.array([1.3426915, 2.333902, 1.6949325, 2.4660966, 1.275991])
+    d0 = np.linspace(100, 200, 20001)
+    d = np.stack([d0, np.full_like(d0, 113.73018), np.full_like(d0, 41.285183)], -1)
+    for dtype in (np.float32, np.float64):
+        eps = np.finfo(dtype).eps
+        for cos_i in (1e-2, 1e-4, 1e-6):
+            res = jax.jit(jo.stack)(n.astype(dtype), d.astype(dtype), dtype(940.0), dtype(cos_i))
+            for pol in "sp":
+                R = np.asarray(getattr(res, f"R_{pol}"), np.float64)
+                assert np.abs(R - 1).max() <= 8 * eps, (dtype, cos_i, pol, np.abs(R - 1).max())
+                assert np.all(np.asarray(getattr(res, f"A_{pol}")) == 0)
+                assert np.all(np.asarray(getattr(res, f"T_{pol}")) == 0)
 
 
 def test_ellipsometry_in_the_instrument_convention():
