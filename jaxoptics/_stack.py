@@ -41,10 +41,11 @@ and the stack is the product of these applied to the field of the outgoing wave,
    interface are multiplied back by the products of ``g`` in front of them, which are <= 1.
    The factor is real so that a lossless layer's matrix stays real: with lossless layers and an
    evanescent wave in the last medium (total internal reflection) the fields then keep their
-   phases exactly, every flux is an exact 0 and ``R = 1`` to a few ulps. (With the complex factor
-   ``exp(i delta)`` rounding mixes the phases: near grazing incidence, where the stack is a
-   cavity of high finesse between the first interface and the last, float32 gave ``R`` of such a
-   stack off by up to 4% and absorption in lossless layers.)
+   phases exactly, every flux is an exact 0 and ``R = 1`` to a few ulps. (A complex factor such as
+   ``exp(i delta)`` lets rounding mix the phases. Near grazing incidence the stack is a cavity of
+   high finesse between the first interface and the last, whose resonances amplify that mixing:
+   with ``exp(i delta)``, float32 ``R`` of such a stack is off by up to 4%, with absorption in
+   lossless layers.)
 2. **No removable singularities.** The Abeles/Rouard recursion on interface coefficients
    ``r_{j,j+1}`` divides by ``k_{z,j} + k_{z,j+1}`` and gives 0/0 (NaN) when an inner layer is at
    its own critical angle (``k_{z,j} = 0``, so ``r = +-1`` on both of its faces). The matrix
