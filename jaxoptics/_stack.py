@@ -337,8 +337,8 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
         sc = _pow2_scale(D)
         Dh = D * sc.astype(D.dtype)
         inv_D = _materialize_parts(jnp.conj(Dh) * (sc / _abs2(Dh)).astype(D.dtype))
-        r = jnp.where(ok, r * inv_D, 0)
-        t = jnp.where(ok, _rmul(G, tnum * inv_D), 1)
+        r = jnp.where(ok, _over(r, D, inv_D), 0)
+        t = jnp.where(ok, _over(_rmul(G, tnum), D, inv_D), 1)
         # flux through each interface, times the scale factors in front of it (module docs):
         # interfaces 0..m-1 from the scan, the first and the last also directly
         scale = nu * (sc * f * sc) / _abs2(Dh)  # the powers of 2 first: no intermediate overflow
@@ -348,6 +348,24 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
         A = inner - jnp.concatenate([inner[1:], last[None]], axis=0)
         out.append(_Group(r, t, _abs2(r), last, entering, A))
     return out[0], out[1]
+
+
+@jax.custom_jvp
+def _over(x, D, inv_D):
+    """`x / D` as `x * inv_D`, with `inv_D = 1 / D` computed once by the caller (shared by its
+    quotients), and the derivative `(dx - (x / D) dD) / D`: the tangent of `1 / D` on its own, of
+    order `dD / D^2`, is never formed. Near grazing incidence on a stack with no interface (D of
+    order cos_i, dD of order 1 / cos_i in the imaginary parts of the indices) it overflows float32,
+    and times `x = 0` (r there) gives NaN in forward mode."""
+    return x * inv_D
+
+
+@_over.defjvp
+def _over_jvp(primals, tangents):
+    x, D, inv_D = primals
+    dx, dD, _ = tangents  # inv_D's own tangent is the dD term
+    q = _over(x, D, inv_D)
+    return q, _over(dx - q * dD, D, inv_D)
 
 
 def _pow2_scale(D):

@@ -55,15 +55,20 @@ def test_invariants(report):
 
 def test_stack_section(report):
     """Thin-film stacks: no NaN/inf values or gradients in any category, float64 within 1e-13 of
-    40-digit mpmath, energy balanced to rounding, float32 within a few float32 roundings of what a
-    2-ulp change of its inputs causes (docs/numerics.md, "Stress test")."""
+    40-digit mpmath and of the closed form (R = 0, T = 1 without an interface), and within 1e-10 of
+    tmm's float64 `inc_tmm` with incoherent layers (as `test_stack`), energy balanced to rounding,
+    float32 within a few float32 roundings of what a 2-ulp change of its inputs causes
+    (docs/numerics.md, "Stress test")."""
     rows = {r["category"]: r for r in report["stack"]}
     assert set(rows) == {"random", "thick absorbers", "TIR and frustrated TIR", "inner layer at its critical angle",
-                         "grazing incidence", "zero thicknesses", "index-matched layers", "metals"}
+                         "grazing incidence", "zero thicknesses", "index-matched layers", "metals", "incoherent layers",
+                         "no interface, near grazing"}
+    assert rows["incoherent layers"]["reference"] == ["tmm"]
+    assert rows["no interface, near grazing"]["reference"] == ["closed form"]
     for r in rows.values():
         assert r["n"] >= 100 and r["mp_compared"] >= 8, r
         assert r["nan_inf_values"] == 0 and r["nan_inf_grad_rev"] == 0 and r["nan_inf_grad_fwd"] == 0, r
-        assert r["mp_max_abs_diff"] < 1e-13, r
+        assert r["mp_max_abs_diff"] < (1e-10 if "tmm" in r["reference"] else 1e-13), r
         assert r["energy_f64"] < 1e-13 and r["energy_f32"] < 2e-6, r
         assert r["f32_max_excess_R"] < 1e-5 and r["f32_max_abs_err_A"] < 1e-4, r
 

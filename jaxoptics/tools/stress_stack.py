@@ -10,7 +10,9 @@ For every category:
   does not reflect is a ratio of two roundings);
 - the energy balance |R + T + sum(A) - 1| in both dtypes;
 - NaN/inf counts of values and of reverse- and forward-mode gradients, both dtypes;
-- float64 against a 40-digit mpmath transfer-matrix evaluation (`mpref.stack_ref`) on a sample.
+- float64 against a reference on a sample: a 40-digit mpmath transfer-matrix evaluation
+  (`mpref.stack_ref`); for stacks with incoherent layers tmm's `inc_tmm` (float64, within about
+  1e-12 of the exact values itself); R = 0 and T = 1 for a stack with no interface.
 """
 
 from __future__ import annotations
@@ -18,8 +20,25 @@ from __future__ import annotations
 import numpy as np
 
 CATEGORIES = ("random", "thick absorbers", "TIR and frustrated TIR", "inner layer at its critical angle",
-              "grazing incidence", "zero thicknesses", "index-matched layers", "metals")
+              "grazing incidence", "zero thicknesses", "index-matched layers", "metals", "incoherent layers",
+              "no interface, near grazing")
 L_CHOICES = (3, 5, 8, 12)
+# incoherent inner layers (0-based among the L - 2) by number of media, in the categories that have them
+_INCOHERENT = {3: (0,), 5: (1,), 8: (1, 4), 12: (2, 6, 9)}
+
+
+def incoherent_of(category, L):
+    """The static `incoherent` positions of a category's stacks of L media."""
+    if category == "incoherent layers" or (category == "no interface, near grazing" and L in (5, 12)):
+        return _INCOHERENT[L]
+    return ()
+
+
+def reference_of(category, L):
+    """What float64 is compared with: "mpmath", "tmm" (incoherent layers) or "closed form"."""
+    if category == "no interface, near grazing":
+        return "closed form"
+    return "tmm" if incoherent_of(category, L) else "mpmath"
 
 
 def make_stacks(category, K, L, rng):
@@ -55,7 +74,20 @@ def make_stacks(category, K, L, rng):
     elif category == "metals":
         n[:, 1:] = np.where(rng.random((K, L - 1)) < 0.5, rng.uniform(0.05, 0.5, (K, L - 1))
                             + 1j * rng.uniform(2, 8, (K, L - 1)), n[:, 1:])
-    return n, d, wl, np.cos(th)
+    elif category == "incoherent layers":  # thick, some weakly absorbing
+        for j in _INCOHERENT[L]:
+            d[:, j] = rng.uniform(2e3, 5e4, K)
+            n[:, j + 1] = n[:, j + 1].real + 1j * np.where(rng.random(K) < 0.5, rng.uniform(0, 1e-3, K), 0)
+    elif category == "no interface, near grazing":  # every medium of the incident index
+        n = np.repeat(n[:, :1].real, L, axis=1) + 0j
+        th = np.arccos(10 ** rng.uniform(-20, -1, K))
+        th[::7] = np.pi / 2
+        if incoherent_of(category, L):
+            d[:, list(_INCOHERENT[L])] = rng.uniform(2e3, 5e4, (K, len(_INCOHERENT[L])))
+    c = np.cos(th)
+    if category == "no interface, near grazing":
+        c[::7] = 0.0
+    return n, d, wl, c
 
 
 def stress_stack(*, n_points=100_000, mp_samples=200, progress=None, seed=0):
@@ -67,13 +99,13 @@ def stress_stack(*, n_points=100_000, mp_samples=200, progress=None, seed=0):
     rng = np.random.default_rng(seed)
     rows = []
     per = max(n_points // (len(CATEGORIES) * len(L_CHOICES)), 8)
-    f = jax.jit(lambda n, d, w, c: jo.stack(n, d, w, c))
-    e = jax.jit(lambda n, d, w, c: jo.ellipsometry(n, d, w, c))
+    f = jax.jit(jo.stack, static_argnames="incoherent")
+    e = jax.jit(jo.ellipsometry, static_argnames="incoherent")
 
-    def loss(nr, ni, d, w, c):
-        return jnp.sum(jo.stack(jax.lax.complex(nr, ni), d, w, c).R)
+    def loss(nr, ni, d, w, c, inc):
+        return jnp.sum(jo.stack(jax.lax.complex(nr, ni), d, w, c, incoherent=inc).R)
 
-    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3, 4)))
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3, 4)), static_argnums=5)
     for cat in CATEGORIES:
         row = dict(category=cat, n=0, f32_max_abs_err_R=0.0, f32_p999_abs_err_R=0.0, f32_max_excess_R=0.0,
                    f32_max_abs_err_T=0.0, f32_max_abs_err_A=0.0, f32_max_abs_err_psi=0.0, energy_f64=0.0,
@@ -82,11 +114,12 @@ def stress_stack(*, n_points=100_000, mp_samples=200, progress=None, seed=0):
         errs = []
         for L in L_CHOICES:
             n, d, wl, c = make_stacks(cat, per, L, rng)
+            inc = incoherent_of(cat, L)
             # inputs rounded to float32 once; float64 then evaluates exactly those
             n32, d32, w32, c32 = n.astype(np.complex64), d.astype(np.float32), wl.astype(np.float32), c.astype(np.float32)
             n64, d64, w64, c64 = n32.astype(np.complex128), d32.astype(np.float64), w32.astype(np.float64), c32.astype(np.float64)
-            r64, r32 = f(n64, d64, w64, c64), f(n32, d32, w32, c32)
-            e64, e32 = e(n64, d64, w64, c64), e(n32, d32, w32, c32)
+            r64, r32 = f(n64, d64, w64, c64, incoherent=inc), f(n32, d32, w32, c32, incoherent=inc)
+            e64, e32 = e(n64, d64, w64, c64, incoherent=inc), e(n32, d32, w32, c32, incoherent=inc)
             row["n"] += per
             for res, key in ((r64, "energy_f64"), (r32, "energy_f32")):
                 for pol in "sp":
@@ -104,10 +137,10 @@ def stress_stack(*, n_points=100_000, mp_samples=200, progress=None, seed=0):
             dpsi = np.abs(np.asarray(e32.psi, np.float64) - np.asarray(e64.psi))[reflects]
             row["f32_max_abs_err_psi"] = max(row["f32_max_abs_err_psi"], float(dpsi.max(initial=0.0)))
             for k, args in enumerate(((n64.real, n64.imag, d64, w64, c64), (n32.real, n32.imag, d32, w32, c32))):
-                g = grad(*args)
+                g = grad(*args, inc)
                 row["nan_inf_grad_rev"] += int(sum(np.sum(~np.isfinite(np.asarray(x))) for x in g))
                 tang = tuple(np.ones_like(a) for a in args)
-                _, jv = jax.jvp(lambda *a: loss(*a), args, tang)
+                _, jv = jax.jvp(lambda *a: loss(*a, inc), args, tang)
                 row["nan_inf_grad_fwd"] += int(not np.isfinite(float(jv)))
                 if k == 0:  # first-order effect of a 2-ulp relative change of every float32 input
                     eps = float(np.finfo(np.float32).eps)
@@ -115,8 +148,12 @@ def stress_stack(*, n_points=100_000, mp_samples=200, progress=None, seed=0):
                     excess = np.maximum(errR - 2 * eps * sens, 0)
                     row["f32_max_excess_R"] = max(row["f32_max_excess_R"], float(excess.max()))
             k = min(mp_samples // len(L_CHOICES), per)
-            row["mp_max_abs_diff"] = max(row["mp_max_abs_diff"], _mp_diff(n64, d64, w64, c64, r64, k))
-            row["mp_compared"] += k
+            worst, compared = _reference_diff(reference_of(cat, L), inc, n64, d64, w64, c64, r64, k)
+            row["mp_max_abs_diff"] = max(row["mp_max_abs_diff"], worst)
+            row["mp_compared"] += compared
+            row.setdefault("reference", [])
+            if reference_of(cat, L) not in row["reference"]:
+                row["reference"].append(reference_of(cat, L))
         row["f32_p999_abs_err_R"] = float(np.quantile(np.concatenate(errs), 0.999))
         rows.append(row)
         if progress:
@@ -124,31 +161,57 @@ def stress_stack(*, n_points=100_000, mp_samples=200, progress=None, seed=0):
     return rows
 
 
-def _mp_diff(n, d, wl, c, res, k):
-    """Max |difference| of R_s, R_p, T_s, T_p from the 40-digit mpmath evaluation, first k stacks."""
+def _reference_diff(reference, inc, n, d, wl, c, res, k):
+    """(max |difference| of R_s, R_p, T_s, T_p from the reference (`reference_of`), stacks compared)
+    over the first k stacks. tmm is not asked about an incoherent layer in which the wave is
+    evanescent (it divides by the layer's zero flux there) nor where it raises."""
+    import warnings
+
     import mpmath as mp
 
     from .mpref import stack_ref
 
-    worst = 0.0
+    worst, compared = 0.0, 0
     for i in range(k):
-        with mp.workdps(40):
-            theta = mp.acos(mp.mpf(float(c[i])))
+        refs = {}
         for pol in "sp":
-            _, _, R, T = stack_ref(pol, n[i], d[i], wl[i], theta)
+            if reference == "closed form":
+                refs[pol] = (0.0, 1.0)
+            elif reference == "tmm":
+                import tmm
+
+                s2 = (n[i, 0].real * np.sqrt(max(0.0, 1 - c[i] ** 2))) ** 2
+                if any(abs(np.sqrt(n[i, j + 1] ** 2 - s2).real) < 1e-6 for j in inc):
+                    break
+                kinds = ["i"] + ["i" if j in inc else "c" for j in range(len(d[i]))] + ["i"]
+                try:
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        ref = tmm.inc_tmm(pol, list(n[i]), [np.inf, *d[i], np.inf], kinds, float(np.arccos(c[i])), wl[i])
+                except (AssertionError, ValueError, ZeroDivisionError, FloatingPointError):
+                    break
+                refs[pol] = (ref["R"], ref["T"])
+            else:
+                with mp.workdps(40):
+                    theta = mp.acos(mp.mpf(float(c[i])))
+                refs[pol] = stack_ref(pol, n[i], d[i], wl[i], theta)[2:]
+        if len(refs) < 2:
+            continue
+        compared += 1
+        for pol, (R, T) in refs.items():
             got = (float(getattr(res, f"R_{pol}")[i]), float(getattr(res, f"T_{pol}")[i]))
             worst = max(worst, abs(got[0] - R), abs(got[1] - T))
-    return worst
+    return worst, compared
 
 
 def stack_stress_table(rows) -> str:
     out = ["| category | stacks | float32 max abs err R | p99.9 | beyond 2-ulp input change | T | A | psi (rad) | "
-           "float64 vs mpmath (stacks) | R+T+sum(A)-1 float64 / float32 | NaN/inf values | NaN/inf grads rev / fwd |",
+           "float64 vs reference (stacks) | R+T+sum(A)-1 float64 / float32 | NaN/inf values | NaN/inf grads rev / fwd |",
            "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in rows:
         out.append(f"| {r['category']} | {r['n']:,} | {r['f32_max_abs_err_R']:.2g} | {r['f32_p999_abs_err_R']:.2g} | "
                    f"{r['f32_max_excess_R']:.2g} | {r['f32_max_abs_err_T']:.2g} | {r['f32_max_abs_err_A']:.2g} | "
-                   f"{r['f32_max_abs_err_psi']:.2g} | {r['mp_max_abs_diff']:.2g} ({r['mp_compared']}) | "
+                   f"{r['f32_max_abs_err_psi']:.2g} | {r['mp_max_abs_diff']:.2g} ({r['mp_compared']}, {' + '.join(r.get('reference', []))}) | "
                    f"{r['energy_f64']:.2g} / {r['energy_f32']:.2g} | {r['nan_inf_values']} | "
                    f"{r['nan_inf_grad_rev']} / {r['nan_inf_grad_fwd']} |")
     return "\n".join(out)
