@@ -15,6 +15,8 @@ Commands:
 from __future__ import annotations
 
 import argparse
+import atexit
+import os
 import sys
 from pathlib import Path
 
@@ -362,5 +364,28 @@ def main(argv=None) -> int:
     return args.func(args)
 
 
+def _exit_now(code: int) -> None:
+    """End the command's process without the interpreter's teardown.
+
+    A process that has imported jax spends about 0.2 s after its last statement freeing its
+    modules and jaxlib's objects (`python -c "import jax"`: 0.20 s from the last statement to the
+    end of the process; `fit --example`: 0.24 s, about a sixth of a warm run; 2-core EPYC). None of
+    it is output: every file a command writes is closed when `main` returns. What the normal exit
+    does that matters is done here: the exit handlers run (JAX's wait for pending effects such as
+    host callbacks, the finalizers of temporary files, handlers a user registered), logging is
+    flushed, and so are the standard streams, before `os._exit`.
+    """
+    atexit._run_exitfuncs()
+    import logging
+
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe (`| head`) or a closed stream
+            code = code or 1
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    _exit_now(main())

@@ -48,3 +48,26 @@ def test_fit_keeps_compiled_programs_between_runs(tmp_path):
     home = tmp_path / "home"
     _run(["-m", "jaxoptics", "demo"], JAXOPTICS_CACHE_DIR="off", HOME=str(home), XDG_CACHE_HOME=str(home / "xdg"))
     assert not (home / "xdg").exists()
+
+
+def test_command_ends_with_its_output_exit_code_and_exit_handlers(tmp_path):
+    """`python -m jaxoptics` ends its process without the interpreter's teardown (`_exit_now`):
+    output written to a file (block-buffered) is complete, exit handlers run after the command, and
+    an error's exit code is kept."""
+    code = ("import atexit, runpy, sys; atexit.register(lambda: print('exit handler ran')); "
+            "sys.argv = ['jaxoptics', 'demo']; runpy.run_module('jaxoptics', run_name='__main__'); "
+            "print('not reached')")
+    out = tmp_path / "out.txt"
+    with open(out, "w") as f:
+        e = dict(os.environ, JAXOPTICS_CACHE_DIR="off")
+        res = subprocess.run([sys.executable, "-c", code], env=e, stdout=f, stderr=subprocess.PIPE, text=True,
+                             timeout=900)
+    assert res.returncode == 0, res.stderr[-2000:]
+    lines = out.read_text().splitlines()
+    assert lines[-1] == "exit handler ran"
+    assert lines[-2].split()[0] == "90.00" and lines[-2].split()[-1] == "yes"  # the table's last row
+    assert "not reached" not in lines
+    bad = subprocess.run([sys.executable, "-m", "jaxoptics", "fit", str(tmp_path / "missing.csv"), "--no-cache"],
+                         capture_output=True, text=True, timeout=900)
+    assert bad.returncode == 2
+    assert "missing.csv: no such file" in bad.stderr
