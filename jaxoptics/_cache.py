@@ -11,8 +11,9 @@ extensions, since XLA compiles for the host's. A later process on the same machi
 calls it: no tracing, no lowering and no compilation-cache lookup.
 
 Where no executable is stored, the program is traced, lowered and compiled once, and its
-executable written. Where the backend cannot serialize an executable, the traced program is
-stored instead (`<key>.jaxexport`, StableHLO serialized by `jax.export`): a later process
+executable written. Where the backend cannot serialize an executable, or where JAX's persistent
+compilation cache supplied it (serialized again, such an executable is incomplete: see
+`_compile_and_store`), the traced program is stored instead (`<key>.jaxexport`, StableHLO serialized by `jax.export`): a later process
 deserializes it and hands it to `jit`, whose compilation the persistent cache then serves; a
 process whose executable is missing or foreign but whose traced program is stored does the same
 (and stores its executable). A file that fails to load is deleted and written again. An
@@ -221,10 +222,11 @@ def _key(name: str, static, args, options) -> str | None:
 
 
 def call(fn, name: str, args: tuple, *, static=None, options=None, fallback):
-    """`fn(*args)` compiled with `options`, through the store when it is enabled and every leaf
-    of `args` is concrete; `fallback()` (the caller's own `jit` call) otherwise. `name` names `fn`
-    (its module and qualified name) and `static` is whatever else `fn` was made from: both are
-    part of the key."""
+    """`fn(*args)` compiled with the compiler `options` (those this XLA knows: `_compile.known_options`,
+    asked only when something is compiled), through the store when it is enabled and every leaf of
+    `args` is concrete; `fallback()` (the caller's own `jit` call) otherwise. `name` names `fn` (its
+    module and qualified name) and `static` is whatever else `fn` was made from: both are part of
+    the key, as are the `options` asked for."""
     leaves, in_tree = jax.tree_util.tree_flatten(args)
     if _dir[0] is None or any(isinstance(x, jax.core.Tracer) for x in leaves):
         return fallback()
@@ -246,6 +248,9 @@ def _stored_or_compiled(fn, name, in_tree, leaves, key, options):
     loaded = _load_executable(exe_path)
     if loaded is not None:
         return loaded
+    from ._compile import known_options
+
+    options = known_options(options)
     path = _dir[0] / (key + _SUFFIX)
     exported_tree = _load(path)
     if exported_tree is not None:  # stored by a machine or backend without this executable
@@ -291,12 +296,36 @@ def _executable_key(key: str) -> str:
     return hashlib.sha256(f"{key}|{_machine()}".encode()).hexdigest()
 
 
+_jax_cache_hits = [0]
+_listening: list[bool] = []
+
+
+def _count_jax_cache_hits(event: str, **kwargs) -> None:
+    if event == "/jax/compilation_cache/cache_hits":
+        _jax_cache_hits[0] += 1
+
+
 def _compile_and_store(jitted, leaves, out_tree, path: Path):
     """`(compiled, stored)`: `jitted` compiled for `leaves`, and whether its executable was written
-    to `path` (with the output tree `out_tree()`)."""
+    to `path` (with the output tree `out_tree()`).
+
+    An executable that JAX's persistent compilation cache supplied is not written: serialized
+    again, it lacks its kernels (jaxlib 0.10 on the CPU: a process that loads it fails when it
+    runs it, "Function ..._kernel not found"). That happens where the store misses a program
+    JAX's cache holds: its file deleted or pruned, or stored under the key of another jaxoptics
+    version. Its traced program is stored instead (`_export`), which later processes compile
+    through JAX's cache."""
     from jax.experimental import serialize_executable
 
-    compiled = jitted.lower(*leaves).compile()
+    if not _listening:
+        jax.monitoring.register_event_listener(_count_jax_cache_hits)
+        _listening.append(True)
+    lowered = jitted.lower(*leaves)  # (programs run while tracing are compiled, and counted, here)
+    hits = _jax_cache_hits[0]
+    compiled = lowered.compile()
+    if _jax_cache_hits[0] != hits:
+        _log.debug("executable not stored: it came from JAX's compilation cache")
+        return compiled, False
     try:
         targets = sorted(set(_CUSTOM_CALL.findall(compiled.as_text() or "")))
         if any(not t.startswith("lapack_") for t in targets):

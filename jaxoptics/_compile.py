@@ -26,11 +26,24 @@ from . import _cache
 QUICK_COMPILE = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 
 
+def wanted_options(quick: bool) -> dict | None:
+    """The options a program is compiled with where this XLA knows them all: `QUICK_COMPILE` for
+    `quick`, else None (XLA's defaults). No compilation: the program store (`_cache`) keys its
+    programs by these, so a process that loads its executables never probes XLA."""
+    return dict(QUICK_COMPILE) if quick else None
+
+
 def compiler_options(quick: bool) -> dict | None:
-    """`QUICK_COMPILE` without the options this XLA does not know, or None (XLA's defaults)."""
-    if not quick:
+    """`wanted_options(quick)` without the options this XLA does not know."""
+    return known_options(wanted_options(quick))
+
+
+def known_options(options: dict | None) -> dict | None:
+    """`options` without those this XLA does not know (a trivial compilation per option set, once
+    per process: about 40 ms)."""
+    if options is None:
         return None
-    wanted = tuple(QUICK_COMPILE.items())
+    wanted = tuple(options.items())
     return dict(wanted) if _known(wanted) else {k: v for k, v in wanted if _known(((k, v),))}
 
 
@@ -60,8 +73,7 @@ def filter_jit(fn):
 
     @functools.cache
     def compiled(quick):
-        options = compiler_options(quick)
-        return jax.jit(run, static_argnums=0, compiler_options=options), options
+        return jax.jit(run, static_argnums=0, compiler_options=compiler_options(quick))
 
     name = f"{fn.__module__}.{fn.__qualname__}"
 
@@ -72,12 +84,11 @@ def filter_jit(fn):
         static_key = (treedef, tuple(leaves))
         if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(dynamic)):
             return inner(static_key, dynamic)
-        jitted, options = compiled(bool(quick))
-        fallback = lambda: jitted(static_key, dynamic)
+        fallback = lambda: compiled(bool(quick))(static_key, dynamic)
         if not _cache.enabled():
             return fallback()
-        return _cache.call(functools.partial(run, static_key), name, (dynamic,), static=static, options=options,
-                           fallback=fallback)
+        return _cache.call(functools.partial(run, static_key), name, (dynamic,), static=static,
+                           options=wanted_options(bool(quick)), fallback=fallback)
 
     return call
 

@@ -48,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _cache
-from ._compile import compiler_options
+from ._compile import known_options, wanted_options
 from ._dispersion import Free, parameter_leaves
 from ._fresnel import materialize
 from ._result import result, static
@@ -483,15 +483,16 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         ok = ok | ok2
         return finish(x, c2, ok, steps, V, S)
 
-    options = _options(B, Q, P)
+    options = known_options(_options(B, Q, P))
     return tuple(_Stage(f, jax.jit(f, compiler_options=options)) for f in (first, errors_only, second))
 
 
 def _options(B, Q, P):
-    """The compiler options of a fit of `B` spectra of `Q` quantities at `P` points. A small fit is
-    compiled with `QUICK_COMPILE`: on the bundled example (one spectrum, 846 residuals) the first
-    call takes 6.9-8.4 s against 11.7 s with XLA's defaults, and a later one 21-30 ms against 9.0 ms."""
-    return compiler_options(B * Q * P <= _QUICK_COMPILE_RESIDUALS)
+    """The compiler options asked for a fit of `B` spectra of `Q` quantities at `P` points
+    (`wanted_options`: those this XLA knows are used). A small fit is compiled with
+    `QUICK_COMPILE`: on the bundled example (one spectrum, 846 residuals) the first call takes
+    6.9-8.4 s against 11.7 s with XLA's defaults, and a later one 21-30 ms against 9.0 ms."""
+    return wanted_options(B * Q * P <= _QUICK_COMPILE_RESIDUALS)
 
 
 class _Stage(NamedTuple):

@@ -189,7 +189,7 @@ def test_prune_keeps_the_most_recently_used(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == [f"{k}{_cache._SUFFIX}" for k in (3, 4)]
 
 
-def test_compiler_options_xla_does_not_know_are_left_out(monkeypatch):
+def test_compiler_options_xla_does_not_know_are_left_out(monkeypatch, tmp_path):
     from jaxoptics import _compile
 
     bogus = {"xla_no_such_option_for_jaxoptics": True}
@@ -200,6 +200,19 @@ def test_compiler_options_xla_does_not_know_are_left_out(monkeypatch):
     assert options == {k: v for k, v in _compile.QUICK_COMPILE.items() if _compile._known(((k, v),))}
     assert "xla_no_such_option_for_jaxoptics" not in options and options["xla_backend_optimization_level"] == 0
     assert _compile.compiler_options(False) is None
+    # through the store, which keys a program by the options asked for: compiled without the
+    # unknown one, stored and loaded
+    theta = np.radians(np.linspace(5.0, 80.0, 12))
+    R = np.asarray(jo.fresnel(np.cos(theta), 1.0, 1.5))
+    _cache.enable_store(tmp_path)
+    try:
+        first = jo.fit_eta(theta, R)
+        assert list(tmp_path.glob("*" + _cache._EXE_SUFFIX))
+        _cache._in_process.clear()
+        again = jo.fit_eta(theta, R)
+    finally:
+        _cache.disable_store()
+    assert float(first.eta) == float(again.eta) == pytest.approx(1.5, rel=1e-6)
 
 
 class _Planted:
@@ -239,22 +252,48 @@ import jaxoptics as jo
 jo.enable_cache(path=sys.argv[1])
 c = jo.load_reflectance(jo.example_path()).curves()[0]
 r = jo.fit_eta(c.theta, c.R, polarization=c.polarization)
-print(float(r.eta), bool(r.converged), *(m in sys.modules for m in ("optimistix", "equinox", "lineax")))
+probed = jo._compile._known.cache_info().currsize > 0  # XLA asked which compiler options it knows
+print(float(r.eta), bool(r.converged), *(m in sys.modules for m in ("optimistix", "equinox", "lineax")), probed)
 """
 
 
 def test_warm_process_calls_the_stored_executable_without_the_solver_stack(tmp_path):
-    """A process whose fit is in the store loads its executable: it traces nothing, so it does
-    not import optimistix, equinox or lineax (the first process, which traces, does)."""
+    """A process whose fit is in the store loads its executable: it traces and compiles nothing,
+    so it does not import optimistix, equinox or lineax, nor ask XLA which compiler options it
+    knows (the first process, which traces and compiles, does all of these)."""
     import subprocess
     import sys
 
     run = lambda: subprocess.run([sys.executable, "-c", _WARM, str(tmp_path)], capture_output=True, text=True,
                                  check=True).stdout.split()
     first, warm = run(), run()
-    assert first[2:] == ["True", "True", "True"], first
-    assert warm[2:] == ["False", "False", "False"], warm
+    assert first[2:] == ["True", "True", "True", "True"], first
+    assert warm[2:] == ["False", "False", "False", "False"], warm
     assert warm[:2] == first[:2] and first[1] == "True"
+
+
+def test_program_found_in_jax_cache_is_stored_in_a_form_a_later_process_runs(tmp_path):
+    """A process whose executable is missing from the store (deleted, pruned, or stored under the
+    key of another jaxoptics version) but whose program JAX's persistent compilation cache holds
+    gets it from there; what it stores must run in a later process (an executable loaded from JAX's
+    cache and serialized again lacks its kernels: "Function ..._kernel not found"). It stores the
+    traced program, the next process compiles that and stores the executable, and the one after
+    loads the executable: it traces nothing."""
+    import subprocess
+    import sys
+
+    run = lambda: subprocess.run([sys.executable, "-c", _WARM, str(tmp_path)], capture_output=True, text=True)
+    first = run()
+    assert first.returncode == 0, first.stderr[-2000:]
+    for f in tmp_path.glob("*" + _cache._EXE_SUFFIX):
+        f.unlink()
+    assert list(tmp_path.glob("jit__first-*-cache"))  # JAX's own entry stays
+    for _ in range(3):
+        later = run()
+        assert later.returncode == 0, later.stderr[-2000:]
+        assert later.stdout.split()[:2] == first.stdout.split()[:2]
+    assert list(tmp_path.glob("*" + _cache._EXE_SUFFIX))
+    assert later.stdout.split()[2:] == ["False", "False", "False", "False"], later.stdout
 
 
 _WARM_STACK = """
@@ -268,7 +307,7 @@ q = np.asarray(truth.quantities(("psi_deg", "delta_deg"), jnp.asarray(wl), jnp.f
 sp = jo.make_spectra(wl, 70.0, {"psi_deg": q[0], "delta_deg": q[1]})
 model = jo.Sample([jo.Layer(1.46, jo.Free(100.0, 0.0, 600.0), name="film")], jo.material("Si"))
 print(repr(float(jo.fit_stack(model, sp)["film.thickness_nm"])), len(list(__import__("pathlib").Path(sys.argv[1]).glob("*.xlaexec"))))
-print(*(m in sys.modules for m in ("optimistix", "equinox", "lineax")))
+print(*(m in sys.modules for m in ("optimistix", "equinox", "lineax")), jo._compile._known.cache_info().currsize > 0)
 """
 
 
@@ -276,7 +315,7 @@ def test_warm_process_runs_a_stored_executable_that_calls_lapack(tmp_path):
     """`fit_stack`'s program calls LAPACK (QR, eigh), whose kernels jaxlib sets up when it lowers a
     linear-algebra operation; a process that only loads the executable sets them up itself (it
     would crash otherwise). It builds no program either, so it does not import optimistix,
-    equinox or lineax (the first process, which traces, does)."""
+    equinox or lineax, nor ask XLA which compiler options it knows (the first process does)."""
     import subprocess
     import sys
 
@@ -284,6 +323,6 @@ def test_warm_process_runs_a_stored_executable_that_calls_lapack(tmp_path):
     first, warm = run(), run()
     assert first.returncode == 0 and warm.returncode == 0, (first.returncode, warm.returncode, warm.stderr[-2000:])
     (value, stored), modules = first.stdout.splitlines()[0].split(), first.stdout.splitlines()[1].split()
-    assert stored == "2" and modules == ["True", "True", "True"], first.stdout  # two stages stored
-    assert warm.stdout.splitlines() == [f"{value} {stored}", "False False False"], (first.stdout, warm.stdout)
+    assert stored == "2" and modules == ["True", "True", "True", "True"], first.stdout  # two stages stored
+    assert warm.stdout.splitlines() == [f"{value} {stored}", "False False False False"], (first.stdout, warm.stdout)
     assert float(value) == pytest.approx(250.0, abs=1e-6)
