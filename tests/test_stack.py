@@ -385,8 +385,8 @@ def test_float32_gradients_finite_at_special_points():
 def test_float32_gradients_finite_without_any_interface_near_grazing(L, inc):
     """Every medium of the incident medium's index (no interface), at and near grazing incidence
     in float32, coherent and with incoherent layers: R = 0 and T = 1, with finite reverse-mode
-    derivatives in n, k, the thicknesses and cos_i, and finite forward-mode ones in k, the
-    thicknesses and cos_i, and of a coherent stack's R in n (the stack's divisor is about 1e-10
+    derivatives in n, k, the thicknesses, the wavelength and cos_i, and finite forward-mode ones in
+    k, the thicknesses, the wavelength and cos_i, and of a coherent stack's R in n (the stack's divisor is about 1e-10
     there, its fourth power below float32's range, and the tangent of its reciprocal above it; an
     incoherent layer's flux normalization is of order cos_i, and its derivative receives a
     cotangent of order 1 / cos_i^2). Forward-mode derivatives in n of T, and with incoherent
@@ -395,19 +395,19 @@ def test_float32_gradients_finite_without_any_interface_near_grazing(L, inc):
     c = np.array([0.0, np.cos(np.pi / 2), 1e-30, 1e-18, 1e-14, 1e-10, 1e-6], np.float32)
     d = np.full(L - 2, 100.0, np.float32)
 
-    def RT(nr, ni, d, c):
-        res = jo.stack(jax.lax.complex(nr, ni), d, np.float32(550.0), c, incoherent=inc)
+    def RT(nr, ni, d, c, wl):
+        res = jo.stack(jax.lax.complex(nr, ni), d, wl, c, incoherent=inc)
         return jnp.stack([res.R_s, res.R_p, res.T_s, res.T_p])
 
-    nr, ni = np.full(L, 1.5, np.float32), np.zeros(L, np.float32)
-    out = np.asarray(RT(nr, ni, d, c))
+    nr, ni, wl = np.full(L, 1.5, np.float32), np.zeros(L, np.float32), np.float32(550.0)
+    out = np.asarray(RT(nr, ni, d, c, wl))
     np.testing.assert_allclose(out, np.repeat([[0.0], [0.0], [1.0], [1.0]], len(c), axis=1), atol=1e-6)
-    J = jax.jacrev(RT, argnums=(0, 1, 2, 3))(nr, ni, d, c)
+    J = jax.jacrev(RT, argnums=(0, 1, 2, 3, 4))(nr, ni, d, c, wl)
     assert all(np.all(np.isfinite(np.asarray(j))) for j in J)
-    J = jax.jacfwd(RT, argnums=(0, 1, 2, 3))(nr, ni, d, c)
+    J = jax.jacfwd(RT, argnums=(0, 1, 2, 3, 4))(nr, ni, d, c, wl)
     if not inc:
         assert np.all(np.isfinite(np.asarray(J[0])[:2])), "forward mode, R in n"
-    assert all(np.all(np.isfinite(np.asarray(j))) for j in J[1:]), "forward mode, in k, d and cos_i"
+    assert all(np.all(np.isfinite(np.asarray(j))) for j in J[1:]), "forward mode, in k, d, cos_i and the wavelength"
 
 
 @pytest.mark.parametrize("case", _grad_cases(), ids=lambda c: c[0])
