@@ -16,7 +16,8 @@ compilation cache supplied it (serialized again, such an executable is incomplet
 `_compile_and_store`), the traced program is stored instead (`<key>.jaxexport`, StableHLO serialized by `jax.export`): a later process
 deserializes it and hands it to `jit`, whose compilation the persistent cache then serves; a
 process whose executable is missing or foreign but whose traced program is stored does the same
-(and stores its executable). A file that fails to load is deleted and written again. An
+(and stores its executable). A file that fails to load is deleted and written again, and so is an
+executable whose first call in a process fails (that call is waited for). An
 executable that calls custom kernels other than LAPACK's is not stored (their libraries' set-up
 happens when a program is lowered, which loading skips); for LAPACK's, loading sets them up
 (`_initialize_lapack`). Like JAX's compilation cache, whose entries are also machine code, the
@@ -234,20 +235,34 @@ def call(fn, name: str, args: tuple, *, static=None, options=None, fallback):
     if key is None:
         return fallback()
     if key not in _in_process:
-        _in_process[key] = _stored_or_compiled(fn, name, in_tree, leaves, key, options)
+        run, out_tree, loaded_from = _stored_or_compiled(fn, name, in_tree, leaves, key, options)
+        if loaded_from is not None:
+            # The first call of a loaded executable is waited for: one that loads but cannot run
+            # (damaged, or written incomplete) is deleted, and the program compiled again.
+            try:
+                out = jax.block_until_ready(run(*leaves))
+            except jax.errors.JaxRuntimeError as e:
+                _log.warning("jaxoptics: dropping stored executable %s, which failed to run (%s)", loaded_from.name, e)
+                loaded_from.unlink(missing_ok=True)
+                run, out_tree, _ = _stored_or_compiled(fn, name, in_tree, leaves, key, options, load=False)
+            else:
+                _in_process[key] = run, out_tree
+                return jax.tree_util.tree_unflatten(out_tree, out)
+        _in_process[key] = run, out_tree
     run, out_tree = _in_process[key]
     return jax.tree_util.tree_unflatten(out_tree, run(*leaves))
 
 
-def _stored_or_compiled(fn, name, in_tree, leaves, key, options):
-    """`(run, out_tree)` for the program of `key`: its executable loaded from the store; else its
-    traced program loaded from the store and compiled; else `fn` traced and compiled here, once
-    (one trace and one lowering). What is compiled is stored as its executable, or, where that
-    cannot be serialized, as its traced program."""
+def _stored_or_compiled(fn, name, in_tree, leaves, key, options, load=True):
+    """`(run, out_tree, loaded_from)` for the program of `key`: its executable loaded from the
+    store (`loaded_from`: its file; unless not `load`); else its traced program loaded from the
+    store and compiled; else `fn` traced and compiled here, once (one trace and one lowering). What
+    is compiled is stored as its executable, or, where that cannot be serialized, as its traced
+    program (`loaded_from` None)."""
     exe_path = _dir[0] / (_executable_key(key) + _EXE_SUFFIX)
-    loaded = _load_executable(exe_path)
+    loaded = _load_executable(exe_path) if load else None
     if loaded is not None:
-        return loaded
+        return (*loaded, exe_path)
     from ._compile import known_options
 
     options = known_options(options)
@@ -256,13 +271,13 @@ def _stored_or_compiled(fn, name, in_tree, leaves, key, options):
     if exported_tree is not None:  # stored by a machine or backend without this executable
         exported, out_tree = exported_tree
         run, _ = _compile_and_store(jax.jit(exported.call, compiler_options=options), leaves, lambda: out_tree, exe_path)
-        return run, out_tree
+        return run, out_tree, None
     flat, out_trees = _flat(fn, name, in_tree)
     jitted = jax.jit(flat, compiler_options=options)
     run, stored = _compile_and_store(jitted, leaves, lambda: out_trees[0], exe_path)
     if not stored:
         _export(jitted, out_trees[0], leaves, path)  # the same `jit`: its trace is reused
-    return run, out_trees[0]
+    return run, out_trees[0], None
 
 
 _EXE_SUFFIX = ".xlaexec"

@@ -296,6 +296,32 @@ def test_program_found_in_jax_cache_is_stored_in_a_form_a_later_process_runs(tmp
     assert later.stdout.split()[2:] == ["False", "False", "False", "False"], later.stdout
 
 
+def test_stored_executable_that_fails_to_run_is_dropped_and_compiled_again(tmp_path):
+    """An executable that loads but fails when run (here: one written the way that lost its
+    kernels, by a process that does not watch for JAX's cache hits) is deleted, with a warning,
+    and the program compiled again: the answer is the same, and the next process runs from the
+    store."""
+    import subprocess
+    import sys
+
+    run = lambda script=_WARM: subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True,
+                                              text=True)
+    first = run()
+    assert first.returncode == 0, first.stderr[-2000:]
+    for f in tmp_path.glob("*" + _cache._EXE_SUFFIX):
+        f.unlink()
+    unwatched = "from jaxoptics import _cache; _cache._listening.append(True)\n" + _WARM
+    assert run(unwatched).returncode == 0
+    assert list(tmp_path.glob("*" + _cache._EXE_SUFFIX))  # written from JAX's cache hit: incomplete
+    mended = run()
+    assert mended.returncode == 0, mended.stderr[-2000:]
+    assert "dropping stored executable" in mended.stderr and "failed to run" in mended.stderr
+    assert mended.stdout.split()[:2] == first.stdout.split()[:2]
+    later = run()
+    assert later.returncode == 0 and "dropping" not in later.stderr, later.stderr[-2000:]
+    assert later.stdout.split()[:2] == first.stdout.split()[:2]
+
+
 _WARM_STACK = """
 import sys, numpy as np, jax
 jax.config.update("jax_enable_x64", True)

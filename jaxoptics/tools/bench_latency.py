@@ -87,9 +87,9 @@ def _env(**kw):
 
 
 def bench_latency(*, quick=False, progress=None, repeats=None) -> list[dict]:
-    import jaxoptics as jo
-
     import compileall
+
+    import jaxoptics as jo
 
     compileall.compile_dir(str(Path(jo.__file__).parent), quiet=1)
     reps = repeats or (3 if quick else 5)
