@@ -13,10 +13,10 @@ calls it: no tracing, no lowering and no compilation-cache lookup.
 Where no executable is stored, the program is traced, lowered and compiled once, and its
 executable written. Where the backend cannot serialize an executable, or where JAX's persistent
 compilation cache supplied it (serialized again, such an executable is incomplete: see
-`_compile_and_store`), the traced program is stored instead (`<key>.jaxexport`, StableHLO serialized by `jax.export`): a later process
-deserializes it and hands it to `jit`, whose compilation the persistent cache then serves; a
-process whose executable is missing or foreign but whose traced program is stored does the same
-(and stores its executable). A file that fails to load is deleted and written again, and so is an
+`_compile_and_store`), the traced program is stored instead (`<key>.jaxexport`, StableHLO
+serialized by `jax.export`): a later process deserializes it and hands it to `jit`, which compiles
+it (or JAX's persistent cache serves it); a process whose executable is missing or foreign but
+whose traced program is stored does the same (and stores its executable). A file that fails to load is deleted and written again, and so is an
 executable whose first call in a process fails (that call is waited for). An
 executable that calls custom kernels other than LAPACK's is not stored (their libraries' set-up
 happens when a program is lowered, which loading skips); for LAPACK's, loading sets them up
@@ -328,8 +328,8 @@ def _compile_and_store(jitted, leaves, out_tree, path: Path):
     again, it lacks its kernels (jaxlib 0.10 on the CPU: a process that loads it fails when it
     runs it, "Function ..._kernel not found"). That happens where the store misses a program
     JAX's cache holds: its file deleted or pruned, or stored under the key of another jaxoptics
-    version. Its traced program is stored instead (`_export`), which later processes compile
-    through JAX's cache."""
+    version. Its traced program is stored instead (`_export`): the next process compiles that,
+    and stores its executable unless JAX's cache supplied that one too."""
     from jax.experimental import serialize_executable
 
     if not _listening:
