@@ -11,17 +11,24 @@ extensions, since XLA compiles for the host's. A later process on the same machi
 calls it: no tracing, no lowering and no compilation-cache lookup.
 
 Where no executable is stored, the program is traced, lowered and compiled once, and its
-executable written. Where the backend cannot serialize an executable, or where JAX's persistent
-compilation cache supplied it (serialized again, such an executable is incomplete: see
-`_compile_and_store`), the traced program is stored instead (`<key>.jaxexport`, StableHLO
-serialized by `jax.export`): a later process deserializes it and hands it to `jit`, which compiles
-it (or JAX's persistent cache serves it); a process whose executable is missing or foreign but
-whose traced program is stored does the same (and stores its executable). A file that fails to load is deleted and written again, and so is an
-executable whose first call in a process fails (that call is waited for). An
-executable that calls custom kernels other than LAPACK's is not stored (their libraries' set-up
-happens when a program is lowered, which loading skips); for LAPACK's, loading sets them up
-(`_initialize_lapack`). Like JAX's compilation cache, whose entries are also machine code, the
-store trusts its directory: it is the user's own.
+executable written. A program whose caller gives symbolic shapes for its inputs (`call`'s
+`poly`: `fit_eta`'s batched solve, for any number of angles and curves in a range) is traced
+for those instead, and that traced program stored under a key of its own: a process that meets
+new shapes in the range lowers and compiles it without tracing. The package ships such programs
+for the command line's fits (`_SHIPPED`, written by `jaxoptics.tools.make_programs`); they are
+found under the same keys, so only by the source and library versions they were traced with.
+
+Where the backend cannot serialize an executable, or where JAX's persistent compilation cache
+supplied it (serialized again, such an executable is incomplete: see `_compile_and_store`), the
+traced program is stored instead (`<key>.jaxexport`, StableHLO serialized by `jax.export`): a
+later process deserializes it and hands it to `jit`, which compiles it (or JAX's persistent
+cache serves it); a process whose executable is missing or foreign but whose traced program is
+stored does the same (and stores its executable). A file that fails to load is deleted and
+written again, and so is an executable whose first call in a process fails (that call is waited
+for). An executable that calls custom kernels other than LAPACK's is not stored (their
+libraries' set-up happens when a program is lowered, which loading skips); for LAPACK's, loading
+sets them up (`_initialize_lapack`). Like JAX's compilation cache, whose entries are also
+machine code, the store trusts its directory: it is the user's own.
 
 The key is a SHA-256 of: the jaxoptics source (every `.py` file of the package, so an edited
 checkout never reuses a stale program), the versions of jax and jaxlib, the backend, the
@@ -136,6 +143,9 @@ def _canon(x, traced: bool) -> str:
     canon = functools.partial(_canon, traced=traced)
     if x is None or isinstance(x, (bool, int, float, complex, str, bytes)):
         return repr(x)
+    if isinstance(x, jax.ShapeDtypeStruct):  # a program's input of symbolic shape (`call`'s `poly`)
+        weak = ", weak" if x.weak_type else ""
+        return f"array({x.dtype}[{', '.join(str(d) for d in x.shape)}]{weak})"
     if isinstance(x, (jax.Array, np.ndarray, np.generic)):
         weak = ", weak" if getattr(x, "weak_type", False) else ""
         if traced:
@@ -192,18 +202,30 @@ def _checked(text: str) -> str:
     return text
 
 
-@functools.cache
-def _environment() -> str:
-    """What a stored program depends on besides its arguments (computed once per process)."""
-    import importlib.metadata
+_LIBRARIES = ("jax", "jaxlib", "optimistix", "equinox", "lineax", "numpy")
 
+
+@functools.cache
+def source_hash() -> str:
+    """SHA-256 of the package's source: every `.py` file, by path and content."""
     package = Path(__file__).parent
     h = hashlib.sha256()
     for f in sorted(package.rglob("*.py")):
         h.update(str(f.relative_to(package)).encode())
         h.update(f.read_bytes())
-    versions = [importlib.metadata.version(d) for d in ("jax", "jaxlib", "optimistix", "equinox", "lineax", "numpy")]
-    return "|".join([h.hexdigest(), *versions, jax.default_backend()])
+    return h.hexdigest()
+
+
+def library_versions() -> dict:
+    import importlib.metadata
+
+    return {d: importlib.metadata.version(d) for d in _LIBRARIES}
+
+
+@functools.cache
+def _environment() -> str:
+    """What a stored program depends on besides its arguments (computed once per process)."""
+    return "|".join([source_hash(), *library_versions().values(), jax.default_backend()])
 
 
 def _key(name: str, static, args, options) -> str | None:
@@ -222,12 +244,18 @@ def _key(name: str, static, args, options) -> str | None:
     return hashlib.sha256("|".join([environment, *config, text]).encode()).hexdigest()
 
 
-def call(fn, name: str, args: tuple, *, static=None, options=None, fallback):
+def call(fn, name: str, args: tuple, *, static=None, options=None, fallback, poly=None):
     """`fn(*args)` compiled with the compiler `options` (those this XLA knows: `_compile.known_options`,
     asked only when something is compiled), through the store when it is enabled and every leaf of
     `args` is concrete; `fallback()` (the caller's own `jit` call) otherwise. `name` names `fn` (its
     module and qualified name) and `static` is whatever else `fn` was made from: both are part of
-    the key, as are the `options` asked for."""
+    the key, as are the `options` asked for.
+
+    `poly`: None, or `(specs, text)`: `args` with `jax.ShapeDtypeStruct` leaves of symbolic shape
+    (`jax.export.symbolic_shape`) that `fn` traces for, and a text naming their range. The traced
+    program is then kept for all those shapes, under a key of its own (of `specs` and `text`, not
+    of the compiler options), and a process that meets a new shape in the range compiles it
+    without tracing. Executables stay keyed by the concrete shapes."""
     leaves, in_tree = jax.tree_util.tree_flatten(args)
     if _dir[0] is None or any(isinstance(x, jax.core.Tracer) for x in leaves):
         return fallback()
@@ -235,7 +263,11 @@ def call(fn, name: str, args: tuple, *, static=None, options=None, fallback):
     if key is None:
         return fallback()
     if key not in _in_process:
-        run, out_tree, loaded_from = _stored_or_compiled(fn, name, in_tree, leaves, key, options)
+        if poly is not None:
+            specs, text = poly
+            poly_key = _key(name, (static, "for all shapes", text), specs, None)
+            poly = None if poly_key is None else (poly_key, jax.tree_util.tree_leaves(specs))
+        run, out_tree, loaded_from = _stored_or_compiled(fn, name, in_tree, leaves, key, options, poly=poly)
         if loaded_from is not None:
             # The first call of a loaded executable is waited for: one that loads but cannot run
             # (damaged, or written incomplete) is deleted, and the program compiled again.
@@ -244,7 +276,7 @@ def call(fn, name: str, args: tuple, *, static=None, options=None, fallback):
             except jax.errors.JaxRuntimeError as e:
                 _log.warning("jaxoptics: dropping stored executable %s, which failed to run (%s)", loaded_from.name, e)
                 loaded_from.unlink(missing_ok=True)
-                run, out_tree, _ = _stored_or_compiled(fn, name, in_tree, leaves, key, options, load=False)
+                run, out_tree, _ = _stored_or_compiled(fn, name, in_tree, leaves, key, options, load=False, poly=poly)
             else:
                 _in_process[key] = run, out_tree
                 return jax.tree_util.tree_unflatten(out_tree, out)
@@ -253,12 +285,14 @@ def call(fn, name: str, args: tuple, *, static=None, options=None, fallback):
     return jax.tree_util.tree_unflatten(out_tree, run(*leaves))
 
 
-def _stored_or_compiled(fn, name, in_tree, leaves, key, options, load=True):
+def _stored_or_compiled(fn, name, in_tree, leaves, key, options, load=True, poly=None):
     """`(run, out_tree, loaded_from)` for the program of `key`: its executable loaded from the
     store (`loaded_from`: its file; unless not `load`); else its traced program loaded from the
-    store and compiled; else `fn` traced and compiled here, once (one trace and one lowering). What
-    is compiled is stored as its executable, or, where that cannot be serialized, as its traced
-    program (`loaded_from` None)."""
+    store and compiled (the one for these shapes, or, with `poly = (poly_key, spec_leaves)`, the
+    one for all shapes of the specs); else `fn` traced and compiled here, once: for the specs'
+    shapes where `poly` is given and that trace succeeds (the program is stored), else for these
+    shapes (one trace and one lowering). What is compiled is stored as its executable, or, where
+    that cannot be serialized, as its traced program (`loaded_from` None)."""
     exe_path = _dir[0] / (_executable_key(key) + _EXE_SUFFIX)
     loaded = _load_executable(exe_path) if load else None
     if loaded is not None:
@@ -267,12 +301,21 @@ def _stored_or_compiled(fn, name, in_tree, leaves, key, options, load=True):
 
     options = known_options(options)
     path = _dir[0] / (key + _SUFFIX)
+    poly_path = None if poly is None else _dir[0] / (poly[0] + _SUFFIX)
     exported_tree = _load(path)
-    if exported_tree is not None:  # stored by a machine or backend without this executable
+    if exported_tree is None and poly is not None:
+        exported_tree = _load(poly_path) or _load_shipped(poly[0])
+    if exported_tree is not None:  # for all shapes, or stored by a machine or backend without this executable
         exported, out_tree = exported_tree
         run, _ = _compile_and_store(jax.jit(exported.call, compiler_options=options), leaves, lambda: out_tree, exe_path)
         return run, out_tree, None
     flat, out_trees = _flat(fn, name, in_tree)
+    if poly is not None:
+        exported = _export_for_all_shapes(flat, out_trees, poly[1], poly_path)
+        if exported is not None:
+            run, _ = _compile_and_store(jax.jit(exported.call, compiler_options=options), leaves,
+                                        lambda: out_trees[0], exe_path)
+            return run, out_trees[0], None
     jitted = jax.jit(flat, compiler_options=options)
     run, stored = _compile_and_store(jitted, leaves, lambda: out_trees[0], exe_path)
     if not stored:
@@ -328,8 +371,10 @@ def _compile_and_store(jitted, leaves, out_tree, path: Path):
     again, it lacks its kernels (jaxlib 0.10 on the CPU: a process that loads it fails when it
     runs it, "Function ..._kernel not found"). That happens where the store misses a program
     JAX's cache holds: its file deleted or pruned, or stored under the key of another jaxoptics
-    version. Its traced program is stored instead (`_export`): the next process compiles that,
-    and stores its executable unless JAX's cache supplied that one too."""
+    version. Its traced program is stored instead (`_export`, or already stored for all shapes):
+    the next process compiles that, and stores its executable unless JAX's cache supplied that
+    one too (for a program stored for all shapes, which is what the first process compiled, it
+    does: such processes compile the stored program from JAX's cache, without tracing)."""
     from jax.experimental import serialize_executable
 
     if not _listening:
@@ -399,12 +444,40 @@ def _read_stored(path: Path, parse, what: str):
 _in_process: dict[str, tuple] = {}
 
 
-def _load(path: Path):
-    def parse(blob):
-        data, out_tree = _Unpickler(io.BytesIO(blob)).load()
-        return jax.export.deserialize(data), out_tree
+def _parse_program(blob):
+    data, out_tree = _Unpickler(io.BytesIO(blob)).load()
+    return jax.export.deserialize(data), out_tree
 
-    return _read_stored(path, parse, "program")
+
+def _load(path: Path):
+    return _read_stored(path, _parse_program, "program")
+
+
+# Traced programs shipped with the package, for all shapes (`call`'s `poly`), under the keys the
+# store gives them: those of the command line's index fits (`jaxoptics.tools.make_programs`
+# writes them and lists what they are in its manifest). Read only, and found only by a process
+# whose key names the same package source and library versions. None: not looked at.
+_SHIPPED: list[Path | None] = [Path(__file__).parent / "data" / "programs"]
+
+
+SHIPPED_SUFFIX = _SUFFIX + ".xz"  # LZMA-compressed
+
+
+def _load_shipped(key: str):
+    if _SHIPPED[0] is None:
+        return None
+    path = _SHIPPED[0] / (key + SHIPPED_SUFFIX)
+    try:
+        blob = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        import lzma
+
+        return _parse_program(lzma.decompress(blob))
+    except Exception as e:
+        _log.warning("jaxoptics: unreadable shipped program %s (%s)", path.name, e)
+        return None
 
 
 class _Unpickler(pickle.Unpickler):
@@ -447,6 +520,24 @@ def _export(jitted, out_tree, leaves, path: Path) -> None:
         _log.debug("not stored: %s", e)
         return
     _write(path, blob)
+
+
+def _export_for_all_shapes(flat, out_trees, specs, path: Path):
+    """`flat` traced for the symbolic shapes of `specs` (`jax.export`), stored in `path` with its
+    output tree; None where it cannot be traced so (then nothing is stored). A program that cannot
+    be serialized is returned all the same (and compiled in this process only)."""
+    try:
+        exported = jax.export.export(jax.jit(flat), disabled_checks=[jax.export.DisabledSafetyCheck.custom_call("ALL")])(*specs)
+    except Exception as e:  # a function that needs concrete shapes: traced for these shapes instead
+        _log.debug("no program for all shapes: %s", e)
+        return None
+    try:
+        blob = pickle.dumps((bytes(exported.serialize()), out_trees[0]))
+    except Exception as e:  # not serializable (host callbacks, ...): not stored
+        _log.debug("not stored: %s", e)
+        return exported
+    _write(path, blob)
+    return exported
 
 
 def _write(path: Path, blob: bytes) -> None:

@@ -57,12 +57,19 @@ def _known(options: tuple) -> bool:
     return True
 
 
-def filter_jit(fn):
+def filter_jit(fn=None, *, poly=None):
     """`fn` compiled as `eqx.filter_jit` does it (arrays traced, everything else static), with
     `compiler_options(quick)` on concrete arrays (inside the caller's own `jit`, it is the
     caller's program that gets compiled, with the caller's options). Called on concrete arrays
     while the program store is enabled (`jaxoptics.enable_cache`), the traced program is kept
-    between processes (`_cache`)."""
+    between processes (`_cache`).
+
+    `poly(dynamic)`: for the array arguments `dynamic` (a tree `(args, kwargs)` with None in the
+    places of the other arguments), the same tree of `jax.ShapeDtypeStruct` with symbolic
+    dimensions (`jax.export`) and a text naming their range, or None. The store then keeps one
+    traced program for all the shapes it covers (`_cache.call`)."""
+    if fn is None:
+        return functools.partial(filter_jit, poly=poly)
 
     def run(static, dynamic):
         args, kwargs = _combine(static, dynamic)
@@ -88,9 +95,16 @@ def filter_jit(fn):
         if not _cache.enabled():
             return fallback()
         return _cache.call(functools.partial(run, static_key), name, (dynamic,), static=static,
-                           options=wanted_options(bool(quick)), fallback=fallback)
+                           options=wanted_options(bool(quick)), fallback=fallback,
+                           poly=None if poly is None else _poly_args(poly, dynamic))
 
     return call
+
+
+def _poly_args(poly, dynamic):
+    """`((specs,), text)` from `poly(dynamic)` for `_cache.call`, whose arguments are `(dynamic,)`."""
+    got = poly(dynamic)
+    return None if got is None else ((got[0],), got[1])
 
 
 def _is_array(x) -> bool:

@@ -11,6 +11,8 @@ eagerly, under `jax.jit` and under `jax.vmap` (see `_solve` for when each stage 
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -167,7 +169,40 @@ def _quick(R):
     return R.shape[0] * R.shape[1] <= _QUICK_COMPILE_POINTS
 
 
-@filter_jit
+# The batched solve is stored (`_cache`) as one traced program for any number of angles in this
+# range (for at most `_BLOCK_POINTS / 4096 = 32` curves: one block), so that a process meeting
+# data with a new number of angles compiles it without tracing (tracing is most of a first fit:
+# optimistix's loops under `vmap`). Below 16 angles the starts' scoring uses every angle.
+_POLY_ANGLES = (16, 4096)
+_POLY_CURVES = 32
+
+
+@functools.cache
+def _poly_dims():
+    lo, hi = _POLY_ANGLES
+    return jax.export.symbolic_shape("b, m", constraints=(f"b <= {_POLY_CURVES}", f"m >= {lo}", f"m <= {hi}"))
+
+
+def angles_poly(dynamic):
+    """The specs of `_first`'s array arguments with the number of angles `m` symbolic (`filter_jit`'s
+    `poly`), or None outside `_POLY_ANGLES` and `_POLY_CURVES`."""
+    (theta, R, w, eta1, y_init), kwargs = dynamic
+    B, m = R.shape
+    if not (_POLY_ANGLES[0] <= m <= _POLY_ANGLES[1] and B <= _POLY_CURVES):
+        return None
+    Bs, M = _poly_dims()
+
+    def spec(x, *dims):
+        return jax.ShapeDtypeStruct(dims, x.dtype, weak_type=getattr(x, "weak_type", False))
+
+    args = (spec(theta, M), spec(R, Bs, M), spec(w, Bs, M if w.shape[-1] == m else 1), spec(eta1),
+            spec(y_init, Bs, y_init.shape[-1]))
+    kwargs = jax.tree_util.tree_map(lambda x: spec(x, Bs), kwargs)  # per-curve polarization weights
+    text = f"b curves, m angles: b <= {_POLY_CURVES}, {_POLY_ANGLES[0]} <= m <= {_POLY_ANGLES[1]}"
+    return (args, kwargs), text
+
+
+@filter_jit(poly=angles_poly)
 def _first(theta, R, w, eta1, y_init, **kw):
     """The batched solve, and whether any curve needs the refit or the branch stage."""
     res, start, alt, ratio = _fit_batch(theta, R, w, eta1, y_init, **kw)

@@ -14,7 +14,7 @@ from jax.flatten_util import ravel_pytree
 
 from ._fit_model import _model, _reflectance_fit, _reflectance_plain
 from ._fit_result import FitResult
-from ._fit_starts import _first_argmin, _of_curve, _per_curve, _score_columns, _start
+from ._fit_starts import _first_argmin, _of_curve, _per_curve, _score_columns, _start, count_below
 from ._fresnel import materialize
 
 
@@ -210,7 +210,7 @@ def _errors(model, cos_i, R, w, eta1, y, *, polarization, absorbing, sigma_given
         # not by another pass over every residual: that cost 5% of a 10^4-curve fit.)
         crit = eta1 * jnp.sqrt(1 - cos_i * cos_i)  # eta2 that puts the critical angle on theta_j
         order = jnp.argsort(crit)
-        pos = jnp.searchsorted(crit[order], y[0])
+        pos = count_below(crit[order], y[0])
         m = crit.shape[0]
         nb = order[jnp.clip(jnp.stack([pos - 1, pos]), 0, m - 1)]
         nb_ok = (jnp.abs(crit[nb] - y[0]) < 3 * jnp.sqrt(cov[0, 0])) & jnp.array([True, nb[0] != nb[1]])
@@ -237,7 +237,8 @@ def _fit_batch(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, ma
     """`polarization`: a name for all curves, or the weight of s-polarized light per curve, `(B,)`."""
     kw = dict(absorbing=absorbing, solver=solver, max_steps=max_steps, use_init=use_init, sigma_given=sigma_given)
     B, m = R.shape
-    k = -(-B // max(1, _BLOCK_POINTS // m))  # number of blocks
+    # number of blocks; one for a symbolic m (`_fit_followups.angles_poly` bounds B m by a block)
+    k = -(-B // max(1, _BLOCK_POINTS // m)) if isinstance(m, int) else 1
     if k <= 1:
         return _fit_block(theta, R, w, eta1, y_init, polarization=polarization, **kw)
     C = -(-B // k)  # curves per block; the last block is padded with copies of the last curve

@@ -52,7 +52,7 @@ def _heuristics(theta, R, eta1, absorbing):
     plateau = R >= 0.97
     first = jnp.min(jnp.where(plateau, theta, jnp.pi / 2))
     ths = jnp.sort(theta)  # shared by the curves: sorted once (under vmap), then a bisection
-    j = jnp.searchsorted(ths, first)
+    j = count_below(ths, first)
     mid = jnp.where(j > 0, 0.5 * (ths[jnp.maximum(j - 1, 0)] + first), first)
     onset = jnp.where(jnp.any(plateau), mid, jnp.nan)
     # Brewster's minimum (of R_p; the unpolarized minimum lies near it too)
@@ -63,8 +63,20 @@ def _heuristics(theta, R, eta1, absorbing):
     return h[:, None]
 
 
+def count_below(sorted_x, v):
+    """`jnp.searchsorted(sorted_x, v)` (a bisection); for a symbolic length, which
+    `jnp.searchsorted` does not take, a count of the elements below `v` (a pass over all)."""
+    if isinstance(sorted_x.shape[0], int):
+        return jnp.searchsorted(sorted_x, v)
+    return jnp.sum(sorted_x < v)
+
+
 def _score_columns(m):
-    """At most 16 of the m angles, evenly spread: where start candidates are ranked."""
+    """At most 16 of the m angles, evenly spread: where start candidates are ranked. For a symbolic
+    m (a program traced for any number of angles, `_fit_followups.angles_poly`: then m >= 16), the
+    same 16 indices computed in the program."""
+    if not isinstance(m, int):  # round(k (m - 1) / 15), k < 16 (never a tie: 2 k (m - 1) is even)
+        return (jnp.arange(16) * (2 * m - 2) + 15) // 30
     return np.unique(np.linspace(0, m - 1, min(m, 16)).round().astype(int))
 
 

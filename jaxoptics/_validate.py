@@ -76,9 +76,10 @@ def vector(x, name: str) -> jax.Array:
 
 
 def broadcast_shapes(**named_shapes) -> tuple[int, ...]:
-    """``np.broadcast_shapes`` with an error that names every argument and its shape."""
+    """``jnp.broadcast_shapes`` (which also takes the symbolic dimensions of `jax.export`) with an
+    error that names every argument and its shape."""
     try:
-        return np.broadcast_shapes(*named_shapes.values())
+        return jnp.broadcast_shapes(*named_shapes.values())
     except ValueError:
         listing = ", ".join(f"{k} {tuple(v)}" for k, v in named_shapes.items())
         raise ValueError(f"shapes cannot be broadcast together: {listing}") from None

@@ -17,6 +17,13 @@ import jaxoptics as jo
 from jaxoptics import _cache, _stack_fit
 
 
+@pytest.fixture(autouse=True)
+def _no_shipped_programs(monkeypatch):
+    """The package's shipped programs (`_cache._SHIPPED`) off: these tests follow what the store
+    traces, compiles and keeps (`test_shipped_programs...` turns them on)."""
+    monkeypatch.setattr(_cache, "_SHIPPED", [None])
+
+
 @pytest.fixture
 def store(tmp_path):
     _cache.enable_store(tmp_path)
@@ -53,7 +60,7 @@ def test_fit_eta_stored_loaded_and_repaired(tmp_path, monkeypatch, caplog):
     try:
         first = fit()  # traced and lowered once, compiled, its executable stored
         (exe,) = tmp_path.glob("*.xlaexec")
-        assert not list(tmp_path.glob("*.jaxexport"))  # the traced program only where no executable is
+        (for_all,) = tmp_path.glob("*.jaxexport")  # and the traced program, for any number of angles
         _cache._in_process.clear()  # as in a new process
         with monkeypatch.context() as m:  # the executable: neither traced nor lowered
             m.setattr(_cache, "_flat", _fails)
@@ -71,6 +78,7 @@ def test_fit_eta_stored_loaded_and_repaired(tmp_path, monkeypatch, caplog):
         from jax.experimental import serialize_executable
 
         exe.unlink()
+        for_all.unlink()
         _cache._in_process.clear()
         with monkeypatch.context() as m:
             m.setattr(serialize_executable, "serialize", _no_serialization)
@@ -95,6 +103,39 @@ def test_fit_eta_stored_loaded_and_repaired(tmp_path, monkeypatch, caplog):
     for r in (first, loaded, rebuilt, traced, from_traced, repaired):
         _assert_same(plain, r)
     assert np.asarray(plain.converged).all()
+
+
+def test_new_numbers_of_angles_and_curves_compile_the_stored_program_without_tracing(store, monkeypatch):
+    """The batched solve is stored as one traced program for every number of angles from 16 to
+    4096 and of curves up to 32 (`_fit_followups.angles_poly`): data of another size in that range
+    is compiled from it, not traced, and fits as the plain call does. Outside the range the
+    program is traced for the shapes given."""
+    rng = np.random.default_rng(7)
+    theta = np.deg2rad(np.linspace(4, 86, 120))
+    Rs, Rp = (np.asarray(x) for x in jo.fresnel_sp(np.cos(theta), 1.0, 1.52))
+    R = np.stack([Rs, Rp, 0.5 * (Rs + Rp)]) + 2e-3 * rng.standard_normal((3, theta.size))
+    pols = ("s", "p", "unpolarized")
+
+    def fit(step, curves):
+        return jo.fit_eta(theta[::step], R[:curves, ::step], polarization=pols[:curves], sigma=2e-3)
+
+    sizes = [(1, 2), (3, 2), (2, 3), (9, 2)]  # (40, 2), (60, 3) and (14, 2): angles and curves
+    _cache.disable_store()
+    plain = [fit(*s) for s in sizes]
+    _cache.enable_store(store)
+    first = fit(*sizes[0])
+    (stored,) = store.glob("*.jaxexport")
+    for size, expected in zip(sizes, plain):
+        _cache._in_process.clear()  # as in a new process
+        with monkeypatch.context() as m:
+            traces = _count_traces(m)
+            got = fit(*size)
+        m_angles = theta[::size[0]].size
+        assert traces == ([] if m_angles >= 16 else ["jaxoptics._fit_followups._first"]), (size, traces)
+        _assert_same(expected, got)
+        assert np.asarray(got.converged).all()
+    assert list(store.glob("*.jaxexport")) == [stored]  # 14 angles: its executable only
+    _assert_same(plain[0], first)
 
 
 def _count_traces(m) -> list:
@@ -245,7 +286,8 @@ def test_executable_key_names_the_machine(monkeypatch):
     assert _cache._executable_key(key) != here
 
 
-_WARM = """
+_NO_SHIPPED = "from jaxoptics import _cache; _cache._SHIPPED[0] = None  # this process traces what the store misses\n"
+_WARM = _NO_SHIPPED + """
 import sys, numpy as np, jax
 jax.config.update("jax_enable_x64", True)
 import jaxoptics as jo
@@ -276,9 +318,9 @@ def test_program_found_in_jax_cache_is_stored_in_a_form_a_later_process_runs(tmp
     """A process whose executable is missing from the store (deleted, pruned, or stored under the
     key of another jaxoptics version) but whose program JAX's persistent compilation cache holds
     gets it from there; what it stores must run in a later process (an executable loaded from JAX's
-    cache and serialized again lacks its kernels: "Function ..._kernel not found"). It stores the
-    traced program, the next process compiles that and stores the executable, and the one after
-    loads the executable: it traces nothing."""
+    cache and serialized again lacks its kernels: "Function ..._kernel not found"). It does not
+    store that executable; it and the later processes compile the stored traced program (for all
+    numbers of angles), which JAX's cache serves: they trace nothing."""
     import subprocess
     import sys
 
@@ -287,13 +329,12 @@ def test_program_found_in_jax_cache_is_stored_in_a_form_a_later_process_runs(tmp
     assert first.returncode == 0, first.stderr[-2000:]
     for f in tmp_path.glob("*" + _cache._EXE_SUFFIX):
         f.unlink()
-    assert list(tmp_path.glob("jit__first-*-cache"))  # JAX's own entry stays
+    assert list(tmp_path.glob("jit_call-*-cache"))  # JAX's own entry stays
     for _ in range(3):
         later = run()
         assert later.returncode == 0, later.stderr[-2000:]
         assert later.stdout.split()[:2] == first.stdout.split()[:2]
-    assert list(tmp_path.glob("*" + _cache._EXE_SUFFIX))
-    assert later.stdout.split()[2:] == ["False", "False", "False", "False"], later.stdout
+        assert later.stdout.split()[2:5] == ["False", "False", "False"], later.stdout  # nothing traced
 
 
 def test_stored_executable_that_fails_to_run_is_dropped_and_compiled_again(tmp_path):
@@ -322,7 +363,7 @@ def test_stored_executable_that_fails_to_run_is_dropped_and_compiled_again(tmp_p
     assert later.stdout.split()[:2] == first.stdout.split()[:2]
 
 
-_WARM_STACK = """
+_WARM_STACK = _NO_SHIPPED + """
 import sys, numpy as np, jax
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp, jaxoptics as jo
@@ -352,3 +393,60 @@ def test_warm_process_runs_a_stored_executable_that_calls_lapack(tmp_path):
     assert stored == "2" and modules == ["True", "True", "True", "True"], first.stdout  # two stages stored
     assert warm.stdout.splitlines() == [f"{value} {stored}", "False False False False"], (first.stdout, warm.stdout)
     assert float(value) == pytest.approx(250.0, abs=1e-6)
+
+
+def test_shipped_programs_are_those_of_the_source():
+    """The programs shipped in `jaxoptics/data/programs` were traced from this source, one for each
+    form of the command line's `fit` calls (`python -m jaxoptics.tools.make_programs` writes them)."""
+    import json
+
+    from jaxoptics.tools import make_programs
+
+    manifest = json.loads((make_programs.OUT / make_programs.MANIFEST).read_text())
+    assert manifest["source"] == _cache.source_hash(), (
+        "the shipped programs are of another source: run python -m jaxoptics.tools.make_programs")
+    assert [p["form"] for p in manifest["programs"]] == [name for name, _ in make_programs.forms()]
+    files = sorted(p["file"] for p in manifest["programs"])
+    assert files == sorted(f.name for f in make_programs.OUT.glob("*" + _cache.SHIPPED_SUFFIX))
+    assert len(set(files)) == len(files) == 16
+
+
+_SHIPPED_RUN = """
+import sys, jax
+from jaxoptics import _cache
+if sys.argv[2] == "off":
+    _cache._SHIPPED[0] = None
+from jaxoptics.__main__ import main
+main(["fit", "--example"])  # (enables the cache in $JAXOPTICS_CACHE_DIR)
+print("traced:", "optimistix" in sys.modules, len(list(_cache._dir[0].glob("*" + _cache._SUFFIX))))
+"""
+
+
+def test_first_command_line_fit_compiles_a_shipped_program_without_tracing(tmp_path):
+    """With an empty cache, `fit --example` compiles the shipped program of its form instead of
+    tracing (it does not import optimistix, and stores no traced program of its own), and prints
+    the fit that tracing gives. Shipped programs are found only with the library versions they
+    were traced with."""
+    import json
+    import subprocess
+    import sys
+
+    from jaxoptics.tools import make_programs
+
+    manifest = json.loads((make_programs.OUT / make_programs.MANIFEST).read_text())
+    if manifest["versions"] != _cache.library_versions():
+        pytest.skip(f"shipped programs are of {manifest['versions']}, installed: {_cache.library_versions()}")
+
+    def run(shipped, cache):
+        env = dict(os.environ, JAXOPTICS_CACHE_DIR=str(tmp_path / cache))
+        out = subprocess.run([sys.executable, "-c", _SHIPPED_RUN, "", shipped], capture_output=True, text=True,
+                             env=env)
+        assert out.returncode == 0, out.stderr[-2000:]
+        table, _, tail = out.stdout.rpartition("traced:")
+        return table, tail.split()
+
+    table, tail = run("on", "shipped")
+    table_traced, tail_traced = run("off", "traced")
+    assert tail == ["False", "0"], tail
+    assert tail_traced == ["True", "1"], tail_traced
+    assert table == table_traced

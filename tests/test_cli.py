@@ -25,6 +25,16 @@ def test_import_loads_only_what_the_kernels_need():
     assert out[1] == "False"
 
 
+def _shipped_programs_apply() -> bool:
+    import json
+
+    from jaxoptics import _cache
+    from jaxoptics.tools import make_programs
+
+    manifest = json.loads((make_programs.OUT / make_programs.MANIFEST).read_text())
+    return manifest["versions"] == _cache.library_versions() and manifest["source"] == _cache.source_hash()
+
+
 def test_fit_keeps_compiled_programs_between_runs(tmp_path):
     """A first run fills the cache directory (compiled programs and the fit's executable), a
     second run gives the same answer from it without tracing the fit; `--no-cache` and
@@ -35,7 +45,8 @@ def test_fit_keeps_compiled_programs_between_runs(tmp_path):
     entries = sorted(p.name for p in cache.iterdir())
     assert any(n.endswith("-cache") for n in entries), entries
     assert any(n.endswith(".xlaexec") for n in entries), entries
-    assert "Finished tracing _first" in first.stderr
+    # traced, unless the package's shipped program of this form is for the installed libraries
+    assert ("Finished tracing _first" in first.stderr) != _shipped_programs_apply()
     second = _run(fit, JAXOPTICS_CACHE_DIR=str(cache), JAX_LOG_COMPILES="1")
     assert second.stdout == first.stdout
     assert "Finished tracing _first" not in second.stderr
