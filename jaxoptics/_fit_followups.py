@@ -170,9 +170,10 @@ def _quick(R):
 
 
 # The batched solve is stored (`_cache`) as one traced program for any number of angles in this
-# range (for at most `_BLOCK_POINTS / 4096 = 32` curves: one block), so that a process meeting
-# data with a new number of angles compiles it without tracing (tracing is most of a first fit:
-# optimistix's loops under `vmap`). Below 16 angles the starts' scoring uses every angle.
+# range and of curves up to `_POLY_CURVES` (`_BLOCK_POINTS / 4096 = 32`: one block, as
+# `_fit_solver._fit_batch` assumes for symbolic shapes), so that a process meeting data of a new
+# size compiles it without tracing (tracing is most of a first fit: optimistix's loops under
+# `vmap`). Below 16 angles the starts' scoring uses every angle, a number of its own.
 _POLY_ANGLES = (16, 4096)
 _POLY_CURVES = 32
 
@@ -184,8 +185,9 @@ def _poly_dims():
 
 
 def angles_poly(dynamic):
-    """The specs of `_first`'s array arguments with the number of angles `m` symbolic (`filter_jit`'s
-    `poly`), or None outside `_POLY_ANGLES` and `_POLY_CURVES`."""
+    """The specs of `_first`'s array arguments with the numbers of curves `b` and of angles `m`
+    symbolic, and a text naming their range (`filter_jit`'s `poly`); None outside `_POLY_CURVES`
+    and `_POLY_ANGLES`."""
     (theta, R, w, eta1, y_init), kwargs = dynamic
     B, m = R.shape
     if not (_POLY_ANGLES[0] <= m <= _POLY_ANGLES[1] and B <= _POLY_CURVES):

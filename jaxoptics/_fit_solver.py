@@ -237,7 +237,7 @@ def _fit_batch(theta, R, w, eta1, y_init, *, polarization, absorbing, solver, ma
     """`polarization`: a name for all curves, or the weight of s-polarized light per curve, `(B,)`."""
     kw = dict(absorbing=absorbing, solver=solver, max_steps=max_steps, use_init=use_init, sigma_given=sigma_given)
     B, m = R.shape
-    # number of blocks; one for a symbolic m (`_fit_followups.angles_poly` bounds B m by a block)
+    # number of blocks; one for symbolic shapes (`_fit_followups.angles_poly` bounds B m by a block)
     k = -(-B // max(1, _BLOCK_POINTS // m)) if isinstance(m, int) else 1
     if k <= 1:
         return _fit_block(theta, R, w, eta1, y_init, polarization=polarization, **kw)
