@@ -508,13 +508,16 @@ def _flat(fn, name, in_tree):
     return flat, out_tree
 
 
-def _export(jitted, out_tree, leaves, path: Path) -> None:
-    """Store the traced program of `jitted` (a `jit` of a `_flat` function already lowered for
-    `leaves`, so JAX's trace cache serves the trace) with its output tree."""
+def _traced(jitted, args):
+    """`jax.export` of `jitted` for `args` (arrays, or specs of symbolic shape). Custom calls without
+    JAX's cross-version guarantee (LAPACK's QR, ...) are allowed: a stored program is only ever
+    loaded by the jax and jaxlib versions that wrote it (the key)."""
+    return jax.export.export(jitted, disabled_checks=[jax.export.DisabledSafetyCheck.custom_call("ALL")])(*args)
+
+
+def _store_traced(exported, out_tree, path: Path) -> None:
+    """Write `exported` with its output tree to `path`; nothing where it cannot be serialized."""
     try:
-        # Custom calls without JAX's cross-version guarantee (LAPACK's QR, ...) are allowed: a
-        # stored program is only ever loaded by the jax and jaxlib versions that wrote it (the key)
-        exported = jax.export.export(jitted, disabled_checks=[jax.export.DisabledSafetyCheck.custom_call("ALL")])(*leaves)
         blob = pickle.dumps((bytes(exported.serialize()), out_tree))
     except Exception as e:  # not serializable (host callbacks, ...): not stored
         _log.debug("not stored: %s", e)
@@ -522,21 +525,27 @@ def _export(jitted, out_tree, leaves, path: Path) -> None:
     _write(path, blob)
 
 
+def _export(jitted, out_tree, leaves, path: Path) -> None:
+    """Store the traced program of `jitted` (a `jit` of a `_flat` function already lowered for
+    `leaves`, so JAX's trace cache serves the trace) with its output tree."""
+    try:
+        exported = _traced(jitted, leaves)
+    except Exception as e:  # not exportable (host callbacks, ...): not stored
+        _log.debug("not stored: %s", e)
+        return
+    _store_traced(exported, out_tree, path)
+
+
 def _export_for_all_shapes(flat, out_trees, specs, path: Path):
     """`flat` traced for the symbolic shapes of `specs` (`jax.export`), stored in `path` with its
     output tree; None where it cannot be traced so (then nothing is stored). A program that cannot
     be serialized is returned all the same (and compiled in this process only)."""
     try:
-        exported = jax.export.export(jax.jit(flat), disabled_checks=[jax.export.DisabledSafetyCheck.custom_call("ALL")])(*specs)
+        exported = _traced(jax.jit(flat), specs)
     except Exception as e:  # a function that needs concrete shapes: traced for these shapes instead
         _log.debug("no program for all shapes: %s", e)
         return None
-    try:
-        blob = pickle.dumps((bytes(exported.serialize()), out_trees[0]))
-    except Exception as e:  # not serializable (host callbacks, ...): not stored
-        _log.debug("not stored: %s", e)
-        return exported
-    _write(path, blob)
+    _store_traced(exported, out_trees[0], path)
     return exported
 
 
