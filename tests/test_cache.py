@@ -398,11 +398,9 @@ def test_warm_process_runs_a_stored_executable_that_calls_lapack(tmp_path):
 def test_shipped_programs_are_those_of_the_source():
     """The programs shipped in `jaxoptics/data/programs` were traced from this source, one for each
     form of the command line's `fit` calls (`python -m jaxoptics.tools.make_programs` writes them)."""
-    import json
-
     from jaxoptics.tools import make_programs
 
-    manifest = json.loads((make_programs.OUT / make_programs.MANIFEST).read_text())
+    manifest = make_programs.read_manifest()
     assert manifest["source"] == _cache.source_hash(), (
         "the shipped programs are of another source: run python -m jaxoptics.tools.make_programs")
     assert [p["form"] for p in manifest["programs"]] == [name for name, _ in make_programs.forms()]
@@ -427,13 +425,12 @@ def test_first_command_line_fit_compiles_a_shipped_program_without_tracing(tmp_p
     tracing (it does not import optimistix, and stores no traced program of its own), and prints
     the fit that tracing gives. Shipped programs are found only with the library versions they
     were traced with."""
-    import json
     import subprocess
     import sys
 
     from jaxoptics.tools import make_programs
 
-    manifest = json.loads((make_programs.OUT / make_programs.MANIFEST).read_text())
+    manifest = make_programs.read_manifest()
     if manifest["versions"] != _cache.library_versions():
         pytest.skip(f"shipped programs are of {manifest['versions']}, installed: {_cache.library_versions()}")
 

@@ -26,12 +26,10 @@ def test_import_loads_only_what_the_kernels_need():
 
 
 def _shipped_programs_apply() -> bool:
-    import json
-
     from jaxoptics import _cache
     from jaxoptics.tools import make_programs
 
-    manifest = json.loads((make_programs.OUT / make_programs.MANIFEST).read_text())
+    manifest = make_programs.read_manifest()
     return manifest["versions"] == _cache.library_versions() and manifest["source"] == _cache.source_hash()
 
 

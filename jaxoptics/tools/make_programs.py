@@ -40,6 +40,11 @@ def forms():
                 yield name, dict(absorbing=absorbing, sigma=sigma, polarization=pol)
 
 
+def read_manifest(directory: Path = OUT) -> dict:
+    """The manifest of the shipped programs: source hash, library versions, backend, programs."""
+    return json.loads((directory / MANIFEST).read_text())
+
+
 def _data(absorbing: bool, polarization, sigma: bool):
     """Curves of the command line's kind (NumPy arrays) for one form: only their shapes and dtypes matter."""
     import jaxoptics as jo
@@ -66,12 +71,13 @@ def main(argv=None) -> int:
     from jaxoptics import _cache
 
     out = Path(args.out)
+    todo = list(forms())
     listing = []
     with tempfile.TemporaryDirectory() as tmp:
         _cache.enable_store(tmp)
         _cache._SHIPPED[0] = None  # trace every one here
         try:
-            for k, (name, form) in enumerate(forms()):
+            for k, (name, form) in enumerate(todo):
                 before = set(Path(tmp).glob("*" + _cache._SUFFIX))
                 theta, R, kw = _data(**form)
                 jo.fit_eta(theta, R, **kw)
@@ -81,7 +87,7 @@ def main(argv=None) -> int:
                     return 1
                 listing.append(dict(file=new[0].name, form=name, **{k: v if isinstance(v, (bool, str)) else list(v)
                                                                      for k, v in form.items()}))
-                print(f"[{k + 1}/16] {name}: {new[0].stat().st_size / 1024:.0f} KiB", flush=True)
+                print(f"[{k + 1}/{len(todo)}] {name}: {new[0].stat().st_size / 1024:.0f} KiB", flush=True)
         finally:
             _cache.disable_store()
         out.mkdir(parents=True, exist_ok=True)
