@@ -62,10 +62,12 @@ Physically-based Rendering* (1994).
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
 from . import _validate as V
@@ -341,11 +343,30 @@ def _terms(cos_i, eta1, eta2, sin_sq=None, q_given=None, *, own_jvp=False) -> _T
     # between two branches that both make sense there (at q ~ 0 both give R ~ 1).
     # With `own_jvp` nothing is differentiated, and every value computed from the divisors is
     # selected on `ok` before it is returned (the quotients themselves may then be inf or NaN).
-    ok = (_abs2(den_s) > 0) & (_abs2(den_p) > 0)
+    if own_jvp and not jnp.iscomplexobj(q):
+        # the same test on the divisors themselves (both >= 0 here): a value's square is a
+        # normal number exactly when the value is at least `_smallest_squarable`. Written as "not
+        # below", so a NaN divisor counts as ok and its NaN reaches the result (`_fresnel_real`
+        # relies on that for a non-finite cos_i): two comparisons per element instead of four
+        # operations.
+        t0 = _smallest_squarable(den_s.dtype)
+        ok = ~((den_s < t0) | (den_p < t0))
+    else:
+        ok = (_abs2(den_s) > 0) & (_abs2(den_p) > 0)
     if not own_jvp:
         den_s = jnp.where(ok, den_s, 1)
         den_p = jnp.where(ok, den_p, 1)
     return _Terms(eta1, eta2, c, ki, kt, diff, tir, m, ok, den_s, den_p, 1 / den_s, 1 / den_p, valid)
+
+
+@functools.cache
+def _smallest_squarable(dtype) -> np.ndarray:
+    """The smallest `x` of `dtype` whose square `x * x` is a normal number (not flushed to 0)."""
+    tiny = np.finfo(dtype).tiny
+    x = np.sqrt(tiny).astype(dtype)
+    while x * x < tiny:
+        x = np.nextafter(x, dtype.type(np.inf))
+    return x
 
 
 def _r_amplitudes(t: _Terms):
@@ -437,6 +458,7 @@ def _one_reader(q):
 
 
 _HALF_SQRT2 = 0.7071067811865476  # |r| <= 1/sqrt(2): R <= 1/2
+_SQRT2 = 1.4142135623730951
 
 
 def _quotients_real(t: _Terms, eta1, eta2):
@@ -454,7 +476,7 @@ def _quotients_real(t: _Terms, eta1, eta2):
             q = num / D_p (= r_p)               where R_p <= 1/2 otherwise (direct),
             q = 4 k_i k_t (eta1 eta2)**2 / D_p**2 (= T_p)  elsewhere.
 
-    The choices are tested on division-free equivalents (`|diff| <= D_s**2 / sqrt(2)` for
+    The choices are tested on division-free equivalents (`sqrt(2) |diff| <= D_s**2` for
     `R_s <= 1/2`), so the loop has two divisions and one square root, as the textbook formula has;
     divided form by form, it would have five, and a division is the slowest vector instruction
     here. Under TIR `k_t = 0`, so both quotients are transmittances equal to 0: `R = 1` and
@@ -465,13 +487,13 @@ def _quotients_real(t: _Terms, eta1, eta2):
     e1, e2, ki, kt, ds, dp, diff = t.e1, t.e2, t.ki, t.kt, t.den_s, t.den_p, t.diff
     kk4 = 4 * ki * kt
     ds2 = ds * ds
-    small_s = jnp.abs(diff) <= _HALF_SQRT2 * ds2
+    small_s = _SQRT2 * jnp.abs(diff) <= ds2  # |diff| scaled, not ds2: a scalar for scalar indices
     q_s = _one_reader(jnp.where(small_s, -diff, kk4) / ds2)
     # r_p's rationalized numerator x (see `_r_amplitudes`) and the direct one
     x = jnp.where(diff >= 0, ki * ds - e1 * e1, ki * kt + t.m)
     num = e2 * e2 * ki - e1 * e1 * kt
     rational = 3 * jnp.abs(num) <= dp
-    small_p = rational | (jnp.abs(num) <= _HALF_SQRT2 * dp)
+    small_p = jnp.abs(num) <= _HALF_SQRT2 * dp  # true wherever `rational` is
     n_p = jnp.where(rational, diff * x, jnp.where(small_p, num, kk4 * (eta1 * eta2) ** 2))
     d_p = dp * jnp.where(rational, ds, jnp.where(small_p, 1, dp))  # D_s D_p, D_p or D_p**2
     q_p = _one_reader(n_p / d_p)
@@ -548,7 +570,10 @@ def _fresnel_real(cos_i, eta1, eta2, q):
     t = _terms(cos_i, eta1, eta2, q_given=q, own_jvp=True)
     small_s, q_s, small_p, q_p = _quotients_real(t, eta1, eta2)
     R = jnp.where(t.ok, 0.5 * (_reflectance(small_s, q_s) + _reflectance(small_p, q_p)), _at_grazing(t))
-    return jnp.where(t.valid, R, jnp.nan)
+    # A non-finite cos_i needs no test of its own: it makes D_p's terms inf - inf or NaN, so `q_p`
+    # and `R` are NaN, and `t.ok` lets that through (tested). Only the indices are tested, which
+    # for scalar indices is no work per element.
+    return jnp.where(_positive_finite(eta1) & _positive_finite(eta2), R, jnp.nan)
 
 
 def _fresnel_real_jvp(primals, tangents):

@@ -79,6 +79,30 @@ def test_documented_out_of_domain_values():
         assert np.isnan(float(jo.critical_angle(a, b))) and np.isnan(float(jo.brewster_angle(a, b)))
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_non_finite_cos_gives_nan_in_every_regime(dtype):
+    """`fresnel` has no per-element finiteness test for a real index: a non-finite cos_i must reach
+    NaN through the arithmetic in every branch (entering and leaving the denser medium, the
+    eta1 > 2 eta2 form of k_t^2, equal indices, extreme ratios), with the indices as constants,
+    traced scalars and arrays, while finite lanes beside them keep their values."""
+    c = np.array([np.inf, -np.inf, np.nan, 0.0, 1e-30, 0.3, 1.0], dtype)
+    pairs = [(1.0, 1.5), (1.5, 1.0), (1.2, 1.2), (3.5, 1.0), (1.0, 1e3), (1e3, 1.0), (1.0, 1.0 + 1e-6)]
+    for e1, e2 in pairs:
+        runs = {
+            "constants": jax.jit(lambda c: jo.fresnel(c, dtype(e1), dtype(e2)))(c),
+            "traced scalars": jax.jit(jo.fresnel)(c, dtype(e1), dtype(e2)),
+            "arrays": jax.jit(jo.fresnel)(c, np.full(c.shape, e1, dtype), np.full(c.shape, e2, dtype)),
+        }
+        # finite lanes: the s and p values, which keep their own finiteness test
+        R_s, R_p = jo.fresnel_sp(c[3:], dtype(e1), dtype(e2))
+        for how, R in runs.items():
+            R = np.asarray(R)
+            assert R.dtype == dtype
+            assert np.isnan(R[:3]).all(), (e1, e2, how, R)
+            eps = np.finfo(dtype).eps
+            np.testing.assert_allclose(R[3:], 0.5 * (R_s + R_p), rtol=4 * eps, atol=4 * eps, err_msg=f"{e1, e2, how}")
+
+
 @pytest.mark.parametrize("x", [np.float64(1.0), np.zeros((0, 3))], ids=["scalar", "empty"])
 def test_shard_batch_refuses_a_missing_or_empty_batch_axis(x):
     with pytest.raises(ValueError, match="non-empty leading batch axis"):

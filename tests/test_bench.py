@@ -36,6 +36,11 @@ def test_bench_runs_and_reports_every_method(tmp_path):
         for m in ("copy (x * 2), freed memory kept", "fresnel, exact (jaxoptics), freed memory kept",
                   "NumPy textbook fresnel", "NumPy textbook fresnel, freed memory kept"):
             assert m in limits, m
+        ratio = {r["use"]: r for r in report["fresnel_vs_naive"]}
+        assert set(ratio) == {"on its own (array output)", "consumed by jnp.sum"}
+        for r in ratio.values():
+            assert r["exact_over_naive"] == r["exact_ns"] / r["naive_ns"] > 0
+        assert "Exact fresnel against the naive formula" in text
     assert all(r["run_s"] > 0 for r in report["limits"] if r.get("n"))
     assert all(r["fusions"] >= 1 for r in report["limits"] if r.get("fusions") is not None)
     assert "What bounds XLA on the CPU" in text

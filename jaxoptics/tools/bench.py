@@ -326,7 +326,7 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "stackfit", "device
     report = {"machine": machine_description(), "quick": quick, "date": run_stamp()}
     cmd = "python -m jaxoptics bench" + (" --quick" if quick else "") + f" --sections {','.join(sections)}"
     md = [f"Measured by `{cmd}` on {report['date']}. Machine: {report['machine']}.", ""]
-    total = (6 * ("fit" in sections) + 3 * ("devices" in sections) + 24 * ("kernels" in sections) + 3 * ("stack" in sections) + 4 * ("stackfit" in sections)
+    total = (6 * ("fit" in sections) + 3 * ("devices" in sections) + 25 * ("kernels" in sections) + 3 * ("stack" in sections) + 4 * ("stackfit" in sections)
              + 9 * ("latency" in sections))
     with tqdm(total=total, desc="bench", unit="step") as bar:
         if "kernels" in sections:
@@ -340,6 +340,10 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "stackfit", "device
             lim = bench_limits(quick=quick, progress=bar, n=max(sizes) if sizes else None)
             report["limits"] = lim
             md += [f"### What bounds XLA on the CPU (float32, N = {lim[0]['n']:,})", "", limits_table(lim), ""]
+            ratio = bench_fresnel_ratio(quick=quick, progress=bar, n=max(sizes) if sizes else None)
+            report["fresnel_vs_naive"] = ratio
+            md += [f"### Exact fresnel against the naive formula (float32, N = {ratio[0]['n']:,}, freed memory kept, "
+                   f"{ratio[0].get('rounds', 0)} interleaved rounds)", "", fresnel_ratio_table(ratio), ""]
         for name, title, measure, table in _sections(sections):
             rows = measure(quick=quick, progress=bar)
             report[name] = rows
@@ -676,6 +680,57 @@ def bench_limits(*, quick=False, progress=None, n=None):
     if progress:
         progress.update(2)
     return rows
+
+
+def bench_fresnel_ratio(*, quick=False, progress=None, n=None, rounds=None):
+    """The exact `fresnel` against the naive transcription of the textbook formula, as a kernel on
+    its own (an array output) and consumed by a reduction (`jnp.sum`), float32, with freed memory
+    kept (so page faults on fresh outputs do not dilute the difference). The kernels are timed in
+    interleaved rounds (exact, naive, naive with the exact kernel's guards; again and again), so a
+    drift of the machine's speed reaches all of them alike; each kernel's time is the median over
+    its rounds, and the ratios are taken between those medians."""
+    import jax
+    import jax.numpy as jnp
+
+    import jaxoptics as jo
+
+    N = n or (1_000_000 if quick else 10_000_000)
+    rounds = rounds or (2 if quick else 5)
+    e1, e2 = 1.5, 1.0
+    c = jnp.asarray(np.random.default_rng(2).uniform(0, 1, N).astype(np.float32))
+    forms = {"exact": lambda c: jo.fresnel(c, e1, e2), "naive": lambda c: _naive_jax_fresnel(c, e1, e2),
+             "guarded": lambda c: _guarded_naive_jax_fresnel(c, e1, e2)}
+    uses = {"on its own (array output)": lambda f: f, "consumed by jnp.sum": lambda f: lambda c: jnp.sum(f(c))}
+    if not jo.keep_freed_memory():
+        return [dict(use="freed memory kept: not available (not glibc), skipped", n=0)]
+    try:
+        compiled = {(u, k): jax.jit(wrap(f)).lower(c).compile() for u, wrap in uses.items() for k, f in forms.items()}
+        times: dict = {key: [] for key in compiled}
+        for _ in range(rounds):
+            for key, fn in compiled.items():
+                times[key].append(timeit(lambda fn=fn: fn(c), repeats=7, settle=3)[1])
+    finally:
+        jo.keep_freed_memory(enable=False)
+    rows = []
+    for u in uses:
+        ns = {k: 1e9 * statistics.median(times[(u, k)]) / N for k in forms}
+        rows.append(dict(use=u, n=N, rounds=rounds, exact_ns=ns["exact"], naive_ns=ns["naive"], guarded_ns=ns["guarded"],
+                         exact_over_naive=ns["exact"] / ns["naive"], guarded_over_naive=ns["guarded"] / ns["naive"]))
+    if progress:
+        progress.update(1)
+    return rows
+
+
+def fresnel_ratio_table(rows) -> str:
+    out = ["| use | exact (ns/element) | naive (ns/element) | naive with the guards (ns/element) | exact / naive "
+           "| guarded / naive |", "| --- | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        if not r.get("n"):
+            out.append(f"| {r['use']} | | | | | |")
+            continue
+        out.append(f"| {r['use']} | {r['exact_ns']:.3g} | {r['naive_ns']:.3g} | {r['guarded_ns']:.3g} "
+                   f"| {r['exact_over_naive']:.2f}x | {r['guarded_over_naive']:.2f}x |")
+    return "\n".join(out)
 
 
 def limits_table(rows) -> str:
