@@ -17,6 +17,8 @@ for those instead, and that traced program stored under a key of its own: a proc
 new shapes in the range lowers and compiles it without tracing. The package ships such programs
 for the command line's fits (`_SHIPPED`, written by `jaxoptics.tools.make_programs`); they are
 found under the same keys, so only by the source and library versions they were traced with.
+With the store off, a call that gives `poly` still compiles its shipped program, if there is one,
+and keeps it for the process (`_shipped_or`).
 
 Where the backend cannot serialize an executable, or where JAX's persistent compilation cache
 supplied it (serialized again, such an executable is incomplete: see `_compile_and_store`), the
@@ -257,8 +259,10 @@ def call(fn, name: str, args: tuple, *, static=None, options=None, fallback, pol
     of the compiler options), and a process that meets a new shape in the range compiles it
     without tracing. Executables stay keyed by the concrete shapes."""
     leaves, in_tree = jax.tree_util.tree_flatten(args)
-    if _dir[0] is None or any(isinstance(x, jax.core.Tracer) for x in leaves):
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
         return fallback()
+    if _dir[0] is None:
+        return _shipped_or(fallback, name, static, args, leaves, options, poly)
     key = _key(name, static, args, options)
     if key is None:
         return fallback()
@@ -285,6 +289,34 @@ def call(fn, name: str, args: tuple, *, static=None, options=None, fallback, pol
     return jax.tree_util.tree_unflatten(out_tree, run(*leaves))
 
 
+def _shipped_or(fallback, name, static, args, leaves, options, poly):
+    """Without the store: the program the package ships for all shapes of `poly` (see `call`),
+    compiled once in this process for these shapes (no tracing); `fallback()` where none is
+    shipped for this call (another form, other library versions, no `poly`)."""
+    if poly is None or _SHIPPED[0] is None:
+        return fallback()
+    key = _key(name, static, args, options)
+    if key is None or key in _not_shipped:
+        return fallback()
+    if key not in _in_process:
+        specs, text = poly
+        poly_key = _key(name, (static, "for all shapes", text), specs, None)
+        got = None if poly_key is None else _load_shipped(poly_key)
+        if got is None:
+            _not_shipped.add(key)
+            return fallback()
+        from ._compile import known_options
+
+        exported, out_tree = got
+        compiled = _ExportedJit(exported, known_options(options)).lower(*leaves).compile()
+        _in_process[key] = compiled, out_tree
+    run, out_tree = _in_process[key]
+    return jax.tree_util.tree_unflatten(out_tree, run(*leaves))
+
+
+_not_shipped: set[str] = set()  # keys of calls without a shipped program, looked for once
+
+
 def _stored_or_compiled(fn, name, in_tree, leaves, key, options, load=True, poly=None):
     """`(run, out_tree, loaded_from)` for the program of `key`: its executable loaded from the
     store (`loaded_from`: its file; unless not `load`); else its traced program loaded from the
@@ -307,13 +339,13 @@ def _stored_or_compiled(fn, name, in_tree, leaves, key, options, load=True, poly
         exported_tree = _load(poly_path) or _load_shipped(poly[0])
     if exported_tree is not None:  # for all shapes, or stored by a machine or backend without this executable
         exported, out_tree = exported_tree
-        run, _ = _compile_and_store(jax.jit(exported.call, compiler_options=options), leaves, lambda: out_tree, exe_path)
+        run, _ = _compile_and_store(_ExportedJit(exported, options), leaves, lambda: out_tree, exe_path)
         return run, out_tree, None
     flat, out_trees = _flat(fn, name, in_tree)
     if poly is not None:
         exported = _export_for_all_shapes(flat, out_trees, poly[1], poly_path)
         if exported is not None:
-            run, _ = _compile_and_store(jax.jit(exported.call, compiler_options=options), leaves,
+            run, _ = _compile_and_store(_ExportedJit(exported, options), leaves,
                                         lambda: out_trees[0], exe_path)
             return run, out_trees[0], None
     jitted = jax.jit(flat, compiler_options=options)
@@ -442,6 +474,35 @@ def _read_stored(path: Path, parse, what: str):
 
 
 _in_process: dict[str, tuple] = {}
+
+
+class _ExportedJit:
+    """`jax.jit(exported.call, compiler_options=options)`, lowered (`lower`) without jax's set-up
+    of its LAPACK kernels where the program calls none.
+
+    Lowering a `jax.export` program for the CPU sets those kernels up whatever the program calls
+    (jax 0.10's `_call_exported_lowering`), and that set-up imports `scipy.linalg`: 0.35 s of a
+    fresh process's first index fit, whose program (a real index) has no LAPACK call. Where the
+    serialized program names no `lapack_` target, the set-up is skipped for that one lowering; a
+    jax without the hook lowers as usual."""
+
+    def __init__(self, exported, options):
+        self.jitted = jax.jit(exported.call, compiler_options=options)
+        self.lapack = b"lapack_" in bytes(exported.mlir_module_serialized)
+
+    def lower(self, *leaves):
+        try:
+            from jax._src.export import _export as hook_module
+        except ImportError:
+            hook_module = None
+        hook = getattr(hook_module, "_ensure_backends_initialized", None)
+        if self.lapack or hook is None:
+            return self.jitted.lower(*leaves)
+        hook_module._ensure_backends_initialized = lambda platforms: None
+        try:
+            return self.jitted.lower(*leaves)
+        finally:
+            hook_module._ensure_backends_initialized = hook
 
 
 def _parse_program(blob):

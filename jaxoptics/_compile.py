@@ -92,7 +92,7 @@ def filter_jit(fn=None, *, poly=None):
         if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(dynamic)):
             return inner(static_key, dynamic)
         fallback = lambda: compiled(bool(quick))(static_key, dynamic)
-        if not _cache.enabled():
+        if not _cache.enabled() and poly is None:
             return fallback()
         return _cache.call(functools.partial(run, static_key), name, (dynamic,), static=static,
                            options=wanted_options(bool(quick)), fallback=fallback,

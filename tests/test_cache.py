@@ -447,3 +447,49 @@ def test_first_command_line_fit_compiles_a_shipped_program_without_tracing(tmp_p
     assert tail == ["False", "0"], tail
     assert tail_traced == ["True", "1"], tail_traced
     assert table == table_traced
+
+
+_SHIPPED_NO_STORE = """
+import sys
+from jaxoptics import _cache
+if sys.argv[2] == "off":
+    _cache._SHIPPED[0] = None
+from jaxoptics.__main__ import main
+main(["fit", "--example", "--no-cache", *sys.argv[3:]])
+print("imported:", "optimistix" in sys.modules, "scipy.linalg" in sys.modules, _cache.enabled())
+"""
+
+
+@pytest.mark.parametrize("form", [[], ["--absorbing"]], ids=["real index", "complex index"])
+def test_fit_without_the_store_compiles_a_shipped_program_without_tracing(form):
+    """With the store off (`--no-cache`, or a library call without `enable_cache`), a fit whose
+    form the package ships compiles the shipped batched solve in the process instead of tracing
+    it, and prints the fit that tracing gives. A program without LAPACK calls (a real index) is
+    lowered without jax's LAPACK set-up, which imports scipy.linalg; one with them (a complex
+    index: QR) gets it, and runs. (The complex example also needs a follow-up stage, which is
+    traced: only the batched solve is shipped.)"""
+    import subprocess
+    import sys
+
+    from jaxoptics.tools import make_programs
+
+    manifest = make_programs.read_manifest()
+    if manifest["versions"] != _cache.library_versions():
+        pytest.skip(f"shipped programs are of {manifest['versions']}, installed: {_cache.library_versions()}")
+
+    def run(shipped):
+        env = {k: v for k, v in os.environ.items() if k != "JAXOPTICS_CACHE_DIR"}
+        env["JAX_LOG_COMPILES"] = "1"
+        out = subprocess.run([sys.executable, "-c", _SHIPPED_NO_STORE, "", shipped, *form], capture_output=True,
+                             text=True, env=env)
+        assert out.returncode == 0, out.stderr[-2000:]
+        table, _, tail = out.stdout.rpartition("imported:")
+        return table, tail.split(), "Finished tracing _first " in out.stderr
+
+    table, imported, traced = run("on")
+    table_traced, imported_traced, traced_traced = run("off")
+    assert not traced and traced_traced
+    assert imported[1:] == [str(bool(form)), "False"], imported
+    if not form:
+        assert imported[0] == "False", imported  # nothing traced: optimistix not even imported
+    assert table == table_traced
