@@ -59,6 +59,7 @@ import os
 import pickle
 import re
 import tempfile
+import threading
 import types
 from pathlib import Path
 
@@ -484,7 +485,10 @@ class _ExportedJit:
     (jax 0.10's `_call_exported_lowering`), and that set-up imports `scipy.linalg`: 0.35 s of a
     fresh process's first index fit, whose program (a real index) has no LAPACK call. Where the
     serialized program names no `lapack_` target, the set-up is skipped for that one lowering; a
-    jax without the hook lowers as usual."""
+    jax without the hook lowers as usual. The hook is swapped under a lock that every lowering
+    here takes, so two threads of the package never see each other's swap (a `jax.export`
+    program of another library lowered at that instant in another thread would; it is a window
+    of one lowering)."""
 
     def __init__(self, exported, options):
         self.jitted = jax.jit(exported.call, compiler_options=options)
@@ -496,13 +500,17 @@ class _ExportedJit:
         except ImportError:
             hook_module = None
         hook = getattr(hook_module, "_ensure_backends_initialized", None)
-        if self.lapack or hook is None:
-            return self.jitted.lower(*leaves)
-        hook_module._ensure_backends_initialized = lambda platforms: None
-        try:
-            return self.jitted.lower(*leaves)
-        finally:
-            hook_module._ensure_backends_initialized = hook
+        with _LOWERING:
+            if self.lapack or hook is None:
+                return self.jitted.lower(*leaves)
+            hook_module._ensure_backends_initialized = lambda platforms: None
+            try:
+                return self.jitted.lower(*leaves)
+            finally:
+                hook_module._ensure_backends_initialized = hook
+
+
+_LOWERING = threading.Lock()
 
 
 def _parse_program(blob):
