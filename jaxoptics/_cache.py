@@ -269,9 +269,8 @@ def call(fn, name: str, args: tuple, *, static=None, options=None, fallback, pol
         return fallback()
     if key not in _in_process:
         if poly is not None:
-            specs, text = poly
-            poly_key = _key(name, (static, "for all shapes", text), specs, None)
-            poly = None if poly_key is None else (poly_key, jax.tree_util.tree_leaves(specs))
+            poly_key = _poly_key(name, static, poly)
+            poly = None if poly_key is None else (poly_key, jax.tree_util.tree_leaves(poly[0]))
         run, out_tree, loaded_from = _stored_or_compiled(fn, name, in_tree, leaves, key, options, poly=poly)
         if loaded_from is not None:
             # The first call of a loaded executable is waited for: one that loads but cannot run
@@ -300,8 +299,7 @@ def _shipped_or(fallback, name, static, args, leaves, options, poly):
     if key is None or key in _not_shipped:
         return fallback()
     if key not in _in_process:
-        specs, text = poly
-        poly_key = _key(name, (static, "for all shapes", text), specs, None)
+        poly_key = _poly_key(name, static, poly)
         got = None if poly_key is None else _load_shipped(poly_key)
         if got is None:
             _not_shipped.add(key)
@@ -316,6 +314,13 @@ def _shipped_or(fallback, name, static, args, leaves, options, poly):
 
 
 _not_shipped: set[str] = set()  # keys of calls without a shipped program, looked for once
+
+
+def _poly_key(name, static, poly) -> str | None:
+    """The key of the program traced for all shapes of `poly = (specs, text)` (see `call`): of the
+    specs and the range's text, not of the compiler options."""
+    specs, text = poly
+    return _key(name, (static, "for all shapes", text), specs, None)
 
 
 def _stored_or_compiled(fn, name, in_tree, leaves, key, options, load=True, poly=None):
