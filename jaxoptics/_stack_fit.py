@@ -17,7 +17,10 @@ The method, per spectrum:
 2. **Gauss-Newton, then Levenberg-Marquardt** (optimistix) from the `starts` best grid points,
    least squares weighted by `sigma`; the lowest chi^2 wins. Gauss-Newton (at most 20 steps)
    stops when its step is below 1e-3 standard errors (`gauss_newton_edm_stop`) or below
-   optimistix's relative tolerance, and fits nearly every spectrum; Levenberg-Marquardt restarts from the same points for those it did not,
+   optimistix's relative tolerance, and fits nearly every spectrum. For a map (more residuals
+   than a small fit's `QUICK_COMPILE` limit) whose grid subset holds at most half of the data,
+   Gauss-Newton runs twice: on the subset first, to a step below 0.1 of that fit's standard
+   errors, then on all the data from there; Levenberg-Marquardt restarts from the same points for those it did not,
    in a second compiled call that is made (and compiled) only when there are such spectra.
    Bounds are kept by the usual change of variables (`x = lo + (hi - lo)(1 + sin u)/2` for two
    bounds, `lo - 1 + sqrt(u^2 + 1)` for one, as MINUIT and lmfit do). The spectra of a map are
@@ -68,6 +71,9 @@ _GN_STEPS = 20
 # covariance's variance scale. `|J s|^2` is MINUIT's EDM (the predicted fall of chi^2), which
 # Migrad takes below `0.002 * tol` with `tol = 0.1` by default: 2e-4.
 _EDM_TOL = 1e-6
+# The first of two Gauss-Newton passes (on a subset of the wavelengths, for maps) stops at a step
+# below 0.1 standard errors of that subset's fit.
+_EDM_TOL_SUBSET = 1e-2
 _GN_LANES = 64
 _LM_LANES = 8
 # Fits of at most this many residuals (spectra x data points) are compiled with `QUICK_COMPILE`:
@@ -322,12 +328,19 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
 
     # Both are called at several places of the one program (the solvers' init and step, the
     # errors, the grid): as jitted functions they are traced once per shape, not at every call
-    model_and_jac = jax.jit(_model_and_jacobian(sample, kinds, wl, ang))
     model_x = jax.jit(model_x)
 
-    def residuals_and_jac(x, V, S):
-        m, J = model_and_jac(x)
-        return weigh(m, V, S), J / S[:, None]  # the wrap of delta has derivative 1
+    def residuals_and_jac_at(wl, ang):
+        """`(x, V, S) -> (r, J)`: weighted residuals and their Jacobian at the points `(wl, ang)`."""
+        model_and_jac = jax.jit(_model_and_jacobian(sample, kinds, wl, ang))
+
+        def residuals_and_jac(x, V, S):
+            m, J = model_and_jac(x)
+            return weigh(m, V, S), J / S[:, None]  # the wrap of delta has derivative 1
+
+        return residuals_and_jac
+
+    residuals_and_jac = residuals_and_jac_at(wl, ang)
 
     def to_x(u):
         return jnp.stack([b.x(u[i]) for i, b in enumerate(bounds)])
@@ -375,26 +388,45 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
 
     tol = _tol(dtype)
     gn = optx.GaussNewton(rtol=tol, atol=tol)
-    # the variance scale of the reported covariance (`errors`), from the residuals at a step
-    dof = Q * P - p
-    var_scale = (lambda r: jnp.maximum(jnp.sum(r * r) / dof, 1)) if sigma_given else (lambda r: jnp.sum(r * r) / dof)
-    gn_stop = gauss_newton_edm_stop(_EDM_TOL, var_scale)
+
+    def var_scale(m):
+        """The variance scale of the reported covariance (`errors`) from the residuals of `m` data."""
+        dof = m - p
+        return (lambda r: jnp.maximum(jnp.sum(r * r) / dof, 1)) if sigma_given else (lambda r: jnp.sum(r * r) / dof)
+
+    gn_stop = gauss_newton_edm_stop(_EDM_TOL, var_scale(Q * P))
+    # A map's Gauss-Newton runs in two passes where the grid's subset of wavelengths holds at most
+    # half of them (`_two_pass`): first on that subset, to a step below 0.1 of the subset's
+    # standard errors, then on all the data from there, which then takes two or three steps.
+    two_pass = sub.shape[0] <= P // 2 and not _quick(B, Q, P)
+    if two_pass:
+        Ps = sub.shape[0]
+        gn_stop_sub = gauss_newton_edm_stop(_EDM_TOL_SUBSET, var_scale(Q * Ps))
     lm = optx.LevenbergMarquardt(rtol=tol, atol=tol)
 
-    @jax.custom_jvp
-    def residuals_u(u, Vb, Sb):
-        return residuals_x(to_x(u), wl, ang, Vb, Sb)
+    def residuals_u_at(wl, ang, residuals_and_jac):
+        """`(u, V, S) -> r`, the weighted residuals at the points `(wl, ang)` in the solvers'
+        variables `u`, with its Jacobian from `residuals_and_jac`."""
 
-    @residuals_u.defjvp
-    def _residuals_u_jvp(primals, tangents):
-        # The Jacobian in one forward pass with p tangents (`jacfwd`), kept as a matrix: the solvers
-        # linearize this function and then apply the linearization to p basis vectors, which for
-        # the stack kernel would store and re-read every intermediate array; J @ du is cheap.
-        u, Vb, Sb = primals
-        du, dV, dS = tangents
-        x, dxdu = jax.jvp(to_x, (u,), (jnp.ones_like(u),))  # x_i depends on u_i alone
-        r, J = residuals_and_jac(x, Vb, Sb)
-        return r, J @ (dxdu * du) - dV / Sb - r * dS / Sb  # r = (model - V) / S is linear in V and 1/S
+        @jax.custom_jvp
+        def residuals_u(u, Vb, Sb):
+            return residuals_x(to_x(u), wl, ang, Vb, Sb)
+
+        @residuals_u.defjvp
+        def _residuals_u_jvp(primals, tangents):
+            # The Jacobian in one forward pass with p tangents (`jacfwd`), kept as a matrix: the
+            # solvers linearize this function and then apply the linearization to p basis vectors,
+            # which for the stack kernel would store and re-read every intermediate array; J @ du
+            # is cheap.
+            u, Vb, Sb = primals
+            du, dV, dS = tangents
+            x, dxdu = jax.jvp(to_x, (u,), (jnp.ones_like(u),))  # x_i depends on u_i alone
+            r, J = residuals_and_jac(x, Vb, Sb)
+            return r, J @ (dxdu * du) - dV / Sb - r * dS / Sb  # r = (model - V) / S is linear in V and 1/S
+
+        return residuals_u
+
+    residuals_u = residuals_u_at(wl, ang, residuals_and_jac)
 
     def starts_of(Vb, Sb, Mg):
         """The `starts` best grid points of one spectrum (or the `Free` values), in `u`."""
@@ -461,9 +493,22 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         # each spectrum only compares its data with it
         Mg = None if grid is None else jax.vmap(lambda x: model_x(x, wl[sub], ang[sub]))(jnp.asarray(grid, dtype))
         U0 = _blocked(jax.vmap(lambda Vb, Sb: starts_of(Vb, Sb, Mg)), (V, S), _FIRST_BLOCK).reshape(M, p)
-        u1, ok1, st1, _ = pooled_least_squares(fn, gn, U0, spec, jnp.arange(M), M, lanes=_GN_LANES,
-                                               max_steps=_GN_STEPS, early_stop=gn_stop, on_progress=(lambda done, _: _report(done // starts, B)) if progress else None)
-        x, c2, ok, steps = best(u1, _blocked(jax.vmap(chi2), (u1, spec), _FIRST_BLOCK), ok1, st1)
+        report = lambda what: (lambda done, _: _report(done // starts, B, what)) if progress else None
+        U1, st0 = U0, 0
+        if two_pass:
+            ws, angs = wl[sub], ang[sub]
+            fn_sub = residuals_u_at(ws, angs, residuals_and_jac_at(ws, angs))
+            Vs = V.reshape(B, Q, P)[:, :, sub].reshape(B, -1)
+            Ss = S.reshape(B, Q, P)[:, :, sub].reshape(B, -1)
+            u0, _, st0, _ = pooled_least_squares(lambda u, i: fn_sub(u, Vs[i], Ss[i]), gn, U0, spec, jnp.arange(M), M,
+                                                 lanes=_GN_LANES, max_steps=_GN_STEPS, early_stop=gn_stop_sub,
+                                                 on_progress=report("first pass, on a subset of the wavelengths"))
+            # the second pass starts where the first ended (from the start, where that is not finite)
+            U1 = jnp.where(jnp.all(jnp.isfinite(u0), axis=-1, keepdims=True), u0, U0)
+        u1, ok1, st1, _ = pooled_least_squares(fn, gn, U1, spec, jnp.arange(M), M, lanes=_GN_LANES,
+                                               max_steps=_GN_STEPS, early_stop=gn_stop,
+                                               on_progress=report("Gauss-Newton stage"))
+        x, c2, ok, steps = best(u1, _blocked(jax.vmap(chi2), (u1, spec), _FIRST_BLOCK), ok1, st0 + st1)
         return U0, x, c2, ok, steps
 
     def errors_only(V, S, state):
@@ -497,12 +542,18 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
     return tuple(_Stage(f, jax.jit(f, compiler_options=options)) for f in (first, errors_only, second))
 
 
+def _quick(B, Q, P):
+    """Whether a fit of `B` spectra of `Q` quantities at `P` points is small: compiled with
+    `QUICK_COMPILE`, and with one Gauss-Newton pass (compile time matters more than run time)."""
+    return B * Q * P <= _QUICK_COMPILE_RESIDUALS
+
+
 def _options(B, Q, P):
     """The compiler options asked for a fit of `B` spectra of `Q` quantities at `P` points
     (`wanted_options`: those this XLA knows are used). A small fit is compiled with
     `QUICK_COMPILE`: on the bundled example (one spectrum, 846 residuals) the first call takes
     6.9-8.4 s against 11.7 s with XLA's defaults, and a later one 21-30 ms against 9.0 ms."""
-    return wanted_options(B * Q * P <= _QUICK_COMPILE_RESIDUALS)
+    return wanted_options(_quick(B, Q, P))
 
 
 class _Stage(NamedTuple):
@@ -608,7 +659,7 @@ def _jacobian_plan(sample):
 _last_report = [0.0]
 
 
-def _report(done, total):
+def _report(done, total, what):
     """Progress on standard error, at most twice a second and once at the end."""
     import sys
     import time
@@ -619,7 +670,7 @@ def _report(done, total):
         return
     _last_report[0] = now
     end = "\n" if done >= total else ""
-    print(f"\rfit_stack: {done} of {total} spectra fitted (Gauss-Newton stage)", end=end, file=sys.stderr, flush=True)
+    print(f"\rfit_stack: {done} of {total} spectra fitted ({what})", end=end, file=sys.stderr, flush=True)
 
 
 def _blocked(f, args, size):
