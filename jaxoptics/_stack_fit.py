@@ -438,9 +438,10 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
         return jax.vmap(to_u)(jnp.asarray(grid, dtype)[jnp.argsort(cost)[:starts]])
 
-    def errors(x, c2, ok, Vb, Sb):
-        J = residuals_and_jac(x, Vb, Sb)[1]
+    def errors(x, ok, Vb, Sb):
+        r, J = residuals_and_jac(x, Vb, Sb)
         m = J.shape[0]
+        c2 = jnp.sum(r * r)
         chi2r = c2 / (m - p)
         A = J.T @ J
         dg = jnp.sqrt(jnp.diag(A))
@@ -480,8 +481,8 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         pick = lambda a: jnp.take_along_axis(a, k.reshape((B, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
         return pick(x), pick(c2), pick(ok), pick(steps.reshape(B, starts))
 
-    def finish(x, c2, ok, steps, V, S):
-        sd, cov, corr, chi2r, conv, at_b = _blocked(jax.vmap(errors), (x, c2, ok, V, S), _FIRST_BLOCK)
+    def finish(x, ok, steps, V, S):
+        sd, cov, corr, chi2r, conv, at_b = _blocked(jax.vmap(errors), (x, ok, V, S), _FIRST_BLOCK)
         return x, sd, cov, corr, chi2r, conv, at_b, steps
 
     def first(V, S):
@@ -508,14 +509,16 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         u1, ok1, st1, _ = pooled_least_squares(fn, gn, U1, spec, jnp.arange(M), M, lanes=_GN_LANES,
                                                max_steps=_GN_STEPS, early_stop=gn_stop,
                                                on_progress=report("Gauss-Newton stage"))
-        x, c2, ok, steps = best(u1, _blocked(jax.vmap(chi2), (u1, spec), _FIRST_BLOCK), ok1, st0 + st1)
+        # chi^2 picks the best of several starts (with one, `errors` forms it from its residuals)
+        c21 = _blocked(jax.vmap(chi2), (u1, spec), _FIRST_BLOCK) if starts > 1 else jnp.zeros(M, dtype)
+        x, c2, ok, steps = best(u1, c21, ok1, st0 + st1)
         return U0, x, c2, ok, steps
 
     def errors_only(V, S, state):
         """The fit of `first`, with its standard errors: where Gauss-Newton fitted every spectrum."""
         V, S = V.reshape(B, -1), S.reshape(B, -1)
-        _, x, c2, ok, steps = state
-        return finish(x, c2, ok, steps, V, S)
+        _, x, _, ok, steps = state
+        return finish(x, ok, steps, V, S)
 
     def second(V, S, state):
         """Levenberg-Marquardt from the same starts, for the spectra Gauss-Newton did not fit (the
@@ -536,7 +539,7 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         c2 = jnp.where(better, c22, c2)
         steps = steps + st2
         ok = ok | ok2
-        return finish(x, c2, ok, steps, V, S)
+        return finish(x, ok, steps, V, S)
 
     options = known_options(_options(B, Q, P))
     return tuple(_Stage(f, jax.jit(f, compiler_options=options)) for f in (first, errors_only, second))
