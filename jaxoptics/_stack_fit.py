@@ -19,9 +19,10 @@ The method, per spectrum:
    stops when its step is below 1e-3 standard errors (`gauss_newton_edm_stop`) or below
    optimistix's relative tolerance, and fits nearly every spectrum. For a map (more residuals
    than a small fit's `QUICK_COMPILE` limit) whose grid subset holds at most half of the data,
-   Gauss-Newton runs twice: on the subset first, to a step below 0.1 of that fit's standard
-   errors, then on all the data from there; Levenberg-Marquardt restarts from the same points for those it did not,
-   in a second compiled call that is made (and compiled) only when there are such spectra.
+   Gauss-Newton runs twice (at most 20 steps each): on the subset first, to a step below 0.1 of
+   that fit's standard errors, then on all the data from there. Levenberg-Marquardt restarts from
+   the grid's points for the spectra Gauss-Newton did not fit, in a second compiled call that is
+   made (and compiled) only when there are such spectra.
    Bounds are kept by the usual change of variables (`x = lo + (hi - lo)(1 + sin u)/2` for two
    bounds, `lo - 1 + sqrt(u^2 + 1)` for one, as MINUIT and lmfit do). The spectra of a map are
    solved by a pool of lanes that take the next spectrum as soon as theirs has converged
@@ -60,11 +61,12 @@ from ._sample import Sample, model_quantities
 from ._spectra import Spectra
 from ._stack import stack
 
-# Gauss-Newton converges in 5-14 steps on the benchmark's map (film thickness and Cauchy A, B, C
-# free; 7.1 on average, 99% within 14); a spectrum it has not fitted after 20 (about 1 in 130
-# there) is handed to Levenberg-Marquardt, which takes 50-80 steps on those. Both run as pools of lanes refilled as
-# problems stop (`_pool`): 64 lanes keep the vectorized stack kernel busy, and the few
-# Levenberg-Marquardt problems run 8 at a time so that idle lanes cost little.
+# On the benchmark's map (film thickness and Cauchy A, B, C free) Gauss-Newton takes 5-8 steps
+# (5.6 on average) on the grid's subset of wavelengths and 2-3 on all the data (both passes: 8 on
+# the median, 99% within 14); a spectrum it has not fitted after 20 steps of a pass (about 1 in 300
+# there) is handed to Levenberg-Marquardt, which takes 40-55 steps on those. Both run as pools of
+# lanes refilled as problems stop (`_pool`): 64 lanes keep the vectorized stack kernel busy, and
+# the few Levenberg-Marquardt problems run 8 at a time so that idle lanes cost little.
 _GN_STEPS = 20
 # Gauss-Newton also stops when its step is below 1e-3 standard errors (`gauss_newton_edm_stop`):
 # the squared step in the metric of the covariance, `|J s|^2`, at most `_EDM_TOL` times the
@@ -101,8 +103,8 @@ class StackFit:
       value is finite.
     - `at_bound`: `(..., p)` bool, a value within `1e-6` (relative to its range) of a bound:
       its standard error describes the curvature there, not a confidence interval.
-    - `num_steps`: `(...)`, solver steps of the winning start (Gauss-Newton's, plus
-      Levenberg-Marquardt's where the spectrum was refitted with it).
+    - `num_steps`: `(...)`, solver steps of the winning start (Gauss-Newton's, of both passes on
+      a map, plus Levenberg-Marquardt's where the spectrum was refitted with it).
     - `sigma_given`: whether the data carried sigma (static).
 
     `fit["oxide.thickness_nm"]` is the value of one parameter; `fit.stderr_of(name)` its error;
@@ -396,8 +398,9 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
 
     gn_stop = gauss_newton_edm_stop(_EDM_TOL, var_scale(Q * P))
     # A map's Gauss-Newton runs in two passes where the grid's subset of wavelengths holds at most
-    # half of them (`_two_pass`): first on that subset, to a step below 0.1 of the subset's
-    # standard errors, then on all the data from there, which then takes two or three steps.
+    # half of the data: first on that subset, to a step below 0.1 of the subset's standard errors,
+    # then on all the data from there, which then takes two or three steps. (A small fit, compiled
+    # with `QUICK_COMPILE` for a short first call, runs one pass: a smaller program.)
     two_pass = sub.shape[0] <= P // 2 and not _quick(B, Q, P)
     if two_pass:
         Ps = sub.shape[0]
