@@ -191,9 +191,9 @@ def stack_fit_table(rows) -> str:
     out += ["", "recovered: the fitted thickness within 4 standard errors of the truth. " + base.get("note", "")]
     jx = next((r for r in rows if r["method"].startswith("jaxoptics") and "model_jac_eval_s" in r), None)
     if jx is not None and "median_calls" in base:
-        P = 2 * len(_grid()[0])
+        points = len(_grid()[0])
         us = lambda t: f"{1e6 * t:.0f} us"
-        out += ["", f"One evaluation of the model at a spectrum's {P // 2} points: NumPy {us(base['model_eval_s'])}, jaxoptics "
+        out += ["", f"One evaluation of the model at a spectrum's {points} points: NumPy {us(base['model_eval_s'])}, jaxoptics "
                     f"{us(jx['model_eval_s'])}, {us(jx['model_jac_eval_s'])} with its Jacobian (batched over 64 spectra). "
                     f"scipy's fit calls its model {base['median_calls']:.0f} times (median; its finite-difference "
                     f"Jacobian's calls included); jaxoptics' fit costs as much as {jx['per_spectrum_s'] / jx['model_jac_eval_s']:.1f} "
