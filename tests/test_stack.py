@@ -1,5 +1,5 @@
-"""Thin-film stacks: `stack` and `ellipsometry` against tmm, an mpmath transfer-matrix oracle,
-closed forms and physical properties; gradients against mpmath derivatives."""
+"""Thin-film stacks: `stack` and `ellipsometry` against tmm and pyElli, an mpmath transfer-matrix
+oracle, closed forms and physical properties; gradients against mpmath derivatives."""
 
 import warnings
 
@@ -801,3 +801,40 @@ def test_ellipsometry_in_the_instrument_convention():
     b = np.arctan(1.5)
     e = jo.ellipsometry(np.array([1.0, 1.5]), np.zeros(0), 500.0, np.cos(np.array([0.3, b - 0.1, b + 0.1])))
     np.testing.assert_allclose((np.pi - np.asarray(e.delta)) % (2 * np.pi), [np.pi, np.pi, 0.0], atol=1e-12)
+
+
+def test_psi_delta_agree_with_pyelli():
+    """The instrument convention against a second peer: pyElli, which writes the index `n + ik`
+    like jaxoptics but `rho = tan(Psi) exp(-i Delta)`, with its own 2x2 transfer matrices. Two-film
+    stacks (one film absorbing) on an absorbing substrate, normal to grazing incidence: pyElli's
+    Psi and Delta equal `psi` and `pi - delta` of `ellipsometry`, and the `psi_deg` and
+    `delta_deg` that `fit_stack` fits."""
+    import elli  # pyElli, a test dependency (the `tools` extra)
+    rng = np.random.default_rng(11)
+    K, wl, angles = 12, np.linspace(300.0, 1000.0, 7), np.array([0.0, 35.0, 70.0, 89.0])
+    n1 = rng.uniform(1.3, 2.5, K) + 1j * rng.uniform(0, 0.3, K)
+    n2 = rng.uniform(1.3, 2.5, K)
+    ns = rng.uniform(1.5, 4.5, K) + 1j * rng.uniform(0, 3.0, K)
+    d = np.stack([rng.uniform(0, 300, K), rng.uniform(0, 600, K)], -1)
+    const = lambda n: elli.IsotropicMaterial(elli.ConstantRefractiveIndex(n=n))
+    Psi, Delta = np.zeros((K, angles.size, wl.size)), np.zeros((K, angles.size, wl.size))
+    for i in range(K):
+        s = elli.Structure(elli.AIR, [elli.Layer(const(n1[i]), d[i, 0]), elli.Layer(const(n2[i]), d[i, 1])], const(ns[i]))
+        for j, a in enumerate(angles):
+            r = s.evaluate(wl, a, solver=elli.Solver2x2)
+            Psi[i, j], Delta[i, j] = r.psi, r.delta
+    wrap = lambda x: (x + 180) % 360 - 180
+    n = np.stack([np.ones(K), n1, n2, ns], -1)[:, None, None, :]
+    e = jo.ellipsometry(n, d[:, None, None, :], wl, np.cos(np.deg2rad(angles))[:, None])
+    np.testing.assert_allclose(np.rad2deg(np.asarray(e.psi)), Psi, rtol=1e-10, atol=1e-10)
+    assert np.max(np.abs(wrap(180 - np.rad2deg(np.asarray(e.delta)) - Delta))) < 1e-8
+    free = lambda: jo.Free(1.0)
+    sample = jo.Sample([jo.Layer(jo.Constant(free(), free()), free()), jo.Layer(jo.Constant(free()), free())], jo.Constant(free(), free()))
+    wl_p, ang_p = np.tile(wl, angles.size), np.repeat(np.deg2rad(angles), wl.size)
+    quantities = jax.jit(jax.vmap(lambda v: sample.with_values(v).quantities(("psi_deg", "delta_deg"), wl_p, ang_p)))
+    assert sample.free_names() == ["layer1.n", "layer1.k", "layer2.n", "substrate.n", "substrate.k", "layer1.thickness_nm",
+                                   "layer2.thickness_nm"]
+    q = np.asarray(quantities(jnp.stack([n1.real, n1.imag, n2, ns.real, ns.imag, d[:, 0], d[:, 1]], -1)))
+    q = q.reshape(K, 2, angles.size, wl.size)
+    np.testing.assert_allclose(q[:, 0], Psi, rtol=1e-10, atol=1e-10)
+    assert np.max(np.abs(wrap(q[:, 1] - Delta))) < 1e-8
