@@ -212,12 +212,13 @@ def test_latency_section(tmp_path):
 
 
 def test_stackfit_bench_section():
-    """The stackfit section fits a map in one call and the scipy loop on a sample of it, both
-    recovering the truth, and the table carries the ratio measured in the same run."""
+    """The stackfit section fits a map in one call and the scipy loops (NumPy's and pyElli's model)
+    on a sample of it, all recovering the truth, and the table carries the ratios measured in the
+    same run."""
     from jaxoptics.tools.bench_stack_fit import bench_stack_fit, stack_fit_table
 
     rows = bench_stack_fit(quick=True, repeats=1)
-    assert [r["method"].split()[0] for r in rows] == ["jaxoptics", "scipy"]
+    assert [r["method"].split()[0] for r in rows] == ["jaxoptics", "scipy", "scipy"] and "pyElli" in rows[2]["method"]
     for r in rows:
         assert r["run_s"] > 0 and r["converged"] == 1.0 and r["recovered"] >= 0.95, r
     text = stack_fit_table(rows)
@@ -225,3 +226,6 @@ def test_stackfit_bench_section():
     # scipy's calls of its model per fit include its finite-difference Jacobian's (4 parameters)
     assert rows[1]["median_calls"] >= 5 and all(r["model_eval_s"] > 0 for r in rows)
     assert "One evaluation of the model at a spectrum's 600 points" in text and "a fit would be 100x faster" in text
+    # pyElli's model is the same to rounding, and its row's time is read against jaxoptics'
+    assert rows[2]["agree_deg"] < 1e-9 and rows[2]["median_calls"] >= 5 and "pyElli's to" in text
+    assert "the same scipy loop calls it" in text and text.count("x |") == 3

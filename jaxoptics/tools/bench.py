@@ -326,7 +326,7 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "stackfit", "device
     report = {"machine": machine_description(), "quick": quick, "date": run_stamp()}
     cmd = "python -m jaxoptics bench" + (" --quick" if quick else "") + f" --sections {','.join(sections)}"
     md = [f"Measured by `{cmd}` on {report['date']}. Machine: {report['machine']}.", ""]
-    total = (6 * ("fit" in sections) + 3 * ("devices" in sections) + 25 * ("kernels" in sections) + 3 * ("stack" in sections) + 4 * ("stackfit" in sections)
+    total = (6 * ("fit" in sections) + 3 * ("devices" in sections) + 25 * ("kernels" in sections) + 3 * ("stack" in sections) + 5 * ("stackfit" in sections)
              + 9 * ("latency" in sections))
     with tqdm(total=total, desc="bench", unit="step") as bar:
         if "kernels" in sections:
