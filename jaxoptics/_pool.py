@@ -36,13 +36,16 @@ def pooled_least_squares(fn, solver, y0, args, order, count, *, lanes: int, max_
       (traced; the rest are not touched).
     - `lanes`: problems in flight at once; `max_steps`: solver steps per problem.
     - `on_progress(done, count)`: an optional host callback after each loop iteration.
-    - `early_stop(y, state) -> (stop, y_final)`: an optional further termination test, called
-      after each step with the step's `y` and the solver's new state (traced, one problem); where
-      `stop`, the problem ends as converged with the value `y_final` (see `gauss_newton_edm_stop`).
+    - `early_stop(y, state) -> (stop, y_final, info)`: an optional further termination test,
+      called after each step with the step's `y` and the solver's new state (traced, one problem);
+      where `stop`, the problem ends as converged with the value `y_final`, and `info` (a pytree
+      of arrays, or None) is kept for it (see `gauss_newton_edm_stop`).
 
-    **Returns:** `(y, ok, steps, touched)`: `(M, p)` solutions (`y0` where not solved), `(M,)`
-    bool converged (the solver terminated successfully with a finite iterate), `(M,)` steps taken,
-    and `(M,)` bool whether the problem was solved at all.
+    **Returns:** `(y, ok, steps, touched, info)`: `(M, p)` solutions (`y0` where not solved),
+    `(M,)` bool converged (the solver terminated successfully with a finite iterate), `(M,)` steps
+    taken, `(M,)` bool whether the problem was solved at all, and `(info, early)`: the `info` of
+    `early_stop` where a problem ended by it (leading axis `M`; zeros elsewhere) and `(M,)` bool
+    `early`, whether it did (`None` without `early_stop` or `info`).
     """
     M = y0.shape[0]
     K = max(1, min(lanes, M))
@@ -60,15 +63,16 @@ def pooled_least_squares(fn, solver, y0, args, order, count, *, lanes: int, max_
         state = eqx.combine(static, dyn)
         y_new, state, _ = solver.step(wrapped, y, a, options, state, tags)
         term, res = solver.terminate(wrapped, y_new, a, options, state, tags)
+        e_stop, info = jnp.asarray(False), None
         if early_stop is not None:
-            e_stop, y_early = early_stop(y_new, state)
+            e_stop, y_early, info = early_stop(y_new, state)
             e_stop = e_stop & ~term & (res == optx.RESULTS.successful) & jnp.all(jnp.isfinite(y_early))
             y_new = jnp.where(e_stop, y_early, y_new)
             term = term | e_stop
         finite = jnp.all(jnp.isfinite(y_new))
         stop = term | (res != optx.RESULTS.successful) | ~finite
         ok = term & (res == optx.RESULTS.successful) & finite
-        return y_new, eqx.partition(state, eqx.is_array)[0], stop, ok
+        return y_new, eqx.partition(state, eqx.is_array)[0], stop, ok, (info, e_stop & finite)
 
     take = lambda tree, idx: jax.tree.map(lambda a: a[idx], tree)
 
@@ -79,12 +83,15 @@ def pooled_least_squares(fn, solver, y0, args, order, count, *, lanes: int, max_
     dyn = jax.vmap(init_dyn)(y, take(args, item))
     out_y, out_ok = y0, jnp.zeros(M, bool)
     out_steps, touched = jnp.zeros(M, jnp.int32), jnp.zeros(M, bool)
-    carry = (y, dyn, item, active, jnp.zeros(K, jnp.int32), jnp.minimum(count, K), out_y, out_ok, out_steps, touched)
+    # the early stop's `info` of each problem, and whether it ended the problem
+    info_struct = None if early_stop is None else jax.eval_shape(lambda: early_stop(y0[0], first_state)[2])
+    out_info = (jax.tree.map(lambda s: jnp.zeros((M,) + s.shape, s.dtype), info_struct), jnp.zeros(M, bool))
+    carry = (y, dyn, item, active, jnp.zeros(K, jnp.int32), jnp.minimum(count, K), out_y, out_ok, out_steps, touched, out_info)
 
     def body(carry):
-        y, dyn, item, active, nst, nxt, out_y, out_ok, out_steps, touched = carry
+        y, dyn, item, active, nst, nxt, out_y, out_ok, out_steps, touched, out_info = carry
         a = take(args, item)
-        y, dyn, stop, ok = jax.vmap(step_dyn)(y, a, dyn)
+        y, dyn, stop, ok, info = jax.vmap(step_dyn)(y, a, dyn)
         nst = nst + 1
         done = active & (stop | (nst >= max_steps))
         # write the finished problems (lanes not done scatter out of range and are dropped)
@@ -93,6 +100,7 @@ def pooled_least_squares(fn, solver, y0, args, order, count, *, lanes: int, max_
         out_ok = out_ok.at[dst].set(ok, mode="drop")
         out_steps = out_steps.at[dst].set(nst, mode="drop")
         touched = touched.at[dst].set(True, mode="drop")
+        out_info = jax.tree.map(lambda o, v: o.at[dst].set(v, mode="drop"), out_info, info)
         # refill: the finished lanes take the next waiting problems, in lane order
         slot = nxt + jnp.cumsum(done) - 1
         refill = done & (slot < count)
@@ -108,16 +116,23 @@ def pooled_least_squares(fn, solver, y0, args, order, count, *, lanes: int, max_
         nxt = jnp.minimum(nxt + jnp.sum(done), count)
         if on_progress is not None:
             jax.debug.callback(on_progress, jnp.sum(touched), count)
-        return y, dyn, item, active, nst, nxt, out_y, out_ok, out_steps, touched
+        return y, dyn, item, active, nst, nxt, out_y, out_ok, out_steps, touched, out_info
 
     carry = jax.lax.while_loop(lambda c: jnp.any(c[3]), body, carry)
-    return carry[6], carry[7], carry[8], carry[9]
+    info, early = carry[10]
+    return carry[6], carry[7], carry[8], carry[9], (None if early_stop is None or info is None else (info, early))
 
 
-def gauss_newton_edm_stop(tol, scale):
+def gauss_newton_edm_stop(tol, scale, *, normal_matrix=False):
     """An `early_stop` for `optx.GaussNewton`: stop where the step Gauss-Newton has just computed,
     `s`, would lower the sum of squares by `|J s|^2 <= tol * scale(r)` (the estimated distance to
     the minimum, MINUIT's EDM criterion), and return the point after that step.
+
+    With `normal_matrix`, its `info` is `(y, J^T J, |r + J s|^2)`: the point `y` where `J` was
+    evaluated, the normal matrix there (in the solver's variables), and the sum of squares that
+    the linearization predicts after the step (`|r|^2 - |J s|^2`: the step solves `J s = -r` in
+    least squares), from which the caller forms the covariance without evaluating the model
+    again. Otherwise `info` is None.
 
     With sigma-weighted residuals the covariance of the parameters is `scale * (J^T J)^-1`, so
     `|J s|^2 / scale` is the squared length of the step in standard errors, in any
@@ -132,7 +147,12 @@ def gauss_newton_edm_stop(tol, scale):
     def stop(y, state):
         s = state.y_eval - y
         r = state.f_info.residual
-        edm = jnp.sum(state.f_info.jac.mv(s) ** 2)
-        return edm <= tol * scale(r), state.y_eval
+        Js = state.f_info.jac.mv(s)
+        edm = jnp.sum(Js**2)
+        info = None
+        if normal_matrix:
+            J = state.f_info.jac.as_matrix()
+            info = (y, J.T @ J, jnp.sum((r + Js) ** 2))
+        return edm <= tol * scale(r), state.y_eval, info
 
     return stop

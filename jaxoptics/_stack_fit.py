@@ -29,8 +29,10 @@ The method, per spectrum:
    (`jaxoptics._pool`), and the Jacobian is formed with as few passes through the stack as the
    model allows (`_jacobian_plan`).
 3. **Uncertainties** from the Jacobian of the weighted residuals in the physical parameters at
-   the solution: covariance `(J^T J)^-1`, inverted through the eigendecomposition of the
-   correlation-scaled matrix, with no truncation: a direction the data do not determine gets an
+   the solution (where Gauss-Newton stopped by its step test, the Jacobian of its last step, less
+   than 1e-3 standard errors before the solution, and the chi^2 that step predicts: no further
+   evaluation of the model; elsewhere evaluated at the solution): covariance `(J^T J)^-1`,
+   inverted through the eigendecomposition of the correlation-scaled matrix, with no truncation: a direction the data do not determine gets an
    enormous standard error and correlations near +-1, never a small one. Without `sigma` the
    residuals' own scatter sets the scale (`cov * chi2_reduced`); with `sigma`, `cov *
    max(1, chi2_reduced)`.
@@ -297,7 +299,8 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
 def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts, max_grid, max_steps, progress):
     """The fit for one sample structure, data grid and batch size as three stages (cached: a second
     `fit_stack` call with the same ones runs without tracing or compiling): `first(V, S) -> state`,
-    the global start and Gauss-Newton; `errors_only(V, S, state) -> fit`, its standard errors; and
+    the global start and Gauss-Newton (with the normal matrix of its last step where it ended by
+    its step test); `errors_only(V, S, state) -> fit`, its standard errors; and
     `second(V, S, state) -> fit`, Levenberg-Marquardt for the spectra Gauss-Newton did not fit, then
     the standard errors. Where `first` fits every spectrum, `second` gives what `errors_only` gives
     (its loop runs zero times)."""
@@ -396,7 +399,9 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         dof = m - p
         return (lambda r: jnp.maximum(jnp.sum(r * r) / dof, 1)) if sigma_given else (lambda r: jnp.sum(r * r) / dof)
 
-    gn_stop = gauss_newton_edm_stop(_EDM_TOL, var_scale(Q * P))
+    # the full-data pass keeps the normal matrix of its last step: the standard errors need no
+    # further evaluation of the model where it ended by this test (`errors`)
+    gn_stop = gauss_newton_edm_stop(_EDM_TOL, var_scale(Q * P), normal_matrix=True)
     # A map's Gauss-Newton runs in two passes where the grid's subset of wavelengths holds at most
     # half of the data: first on that subset, to a step below 0.1 of the subset's standard errors,
     # then on all the data from there, which then takes two or three steps. (A small fit, compiled
@@ -441,12 +446,27 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
         return jax.vmap(to_u)(jnp.asarray(grid, dtype)[jnp.argsort(cost)[:starts]])
 
-    def errors(x, ok, Vb, Sb):
+    def normal(x, Vb, Sb):
+        """The normal matrix `J^T J` of the weighted residuals in `x`, and their sum of squares."""
         r, J = residuals_and_jac(x, Vb, Sb)
-        m = J.shape[0]
-        c2 = jnp.sum(r * r)
-        chi2r = c2 / (m - p)
-        A = J.T @ J
+        return J.T @ J, jnp.sum(r * r)
+
+    def normal_from_stop(info):
+        """`normal` from the Gauss-Newton stop's `info` (`gauss_newton_edm_stop`): its normal
+        matrix in `u`, at the point `u` where the last step began, taken to `x` by the chain rule
+        (`J_x = J_u / (dx/du)` column by column: a product undone, exact to rounding while
+        `dx/du` is not zero), and the sum of squares predicted after the step. That step is below
+        1e-3 standard errors, so `J` differs from its value at the solution by as little."""
+        u, Au, c2 = info
+        dxdu = jax.jvp(to_x, (u,), (jnp.ones_like(u),))[1]
+        A = Au / dxdu[:, None] / dxdu[None, :]
+        usable = jnp.all(dxdu != 0) & jnp.all(jnp.isfinite(A)) & jnp.isfinite(c2)
+        return A, c2, usable
+
+    def errors(x, ok, A, c2):
+        """Standard errors, covariance, correlation, chi^2/dof, flags from the normal matrix `A`
+        and the sum of squares `c2` at `x`."""
+        chi2r = c2 / (Q * P - p)
         dg = jnp.sqrt(jnp.diag(A))
         dsafe = jnp.where(dg > 0, dg, 1)
         # invert the correlation-scaled normal matrix through its eigendecomposition, without
@@ -475,22 +495,27 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
     M = B * starts
     spec = jnp.arange(M) // starts  # the spectrum of each (spectrum, start) problem
 
-    def best(u, c2, ok, steps):
-        """The lowest chi^2 among each spectrum's starts."""
+    def best(u, c2, ok, steps, *more):
+        """The lowest chi^2 among each spectrum's starts (and the arrays `more` of that start)."""
         x = jax.vmap(to_x)(u).reshape(B, starts, p)
         c2 = jnp.where(jnp.isfinite(c2), c2, jnp.inf).reshape(B, starts)
         ok = ok.reshape(B, starts) & jnp.isfinite(c2)
         k = jnp.argmin(jnp.where(ok, c2, jnp.inf), axis=1)
         pick = lambda a: jnp.take_along_axis(a, k.reshape((B, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
-        return pick(x), pick(c2), pick(ok), pick(steps.reshape(B, starts))
+        return (pick(x), pick(c2), pick(ok), pick(steps.reshape(B, starts))) + tuple(pick(a.reshape((B, starts) + a.shape[1:])) for a in more)
 
-    def finish(x, ok, steps, V, S):
-        sd, cov, corr, chi2r, conv, at_b = _blocked(jax.vmap(errors), (x, ok, V, S), _FIRST_BLOCK)
+    def finish(x, ok, steps, V, S, A, c2, have):
+        """The results: the normal matrix and sum of squares `A`, `c2` where `have`, evaluated at
+        `x` for the other spectra (their number sets the cost: `_pending_map`)."""
+        order = jnp.argsort(have, stable=True)
+        A, c2 = _pending_map(normal, (x, V, S), order, jnp.sum(~have), _FIRST_BLOCK, (A, c2))
+        sd, cov, corr, chi2r, conv, at_b = jax.vmap(errors)(x, ok, A, c2)
         return x, sd, cov, corr, chi2r, conv, at_b, steps
 
     def first(V, S):
         """The global start and Gauss-Newton from every start: the starts `U0`, and the best
-        solution's `x`, `c2`, `ok`, `steps` per spectrum."""
+        solution's `x`, `c2`, `ok`, `steps` per spectrum, with the normal matrix `A` of its last
+        step where `have` (`c2` is then that step's prediction; see `finish`)."""
         V, S = V.reshape(B, -1), S.reshape(B, -1)
         fn, chi2 = problems(V, S)
         # the model on the grid does not depend on the data: evaluated once for the whole map, and
@@ -504,24 +529,26 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
             fn_sub = residuals_u_at(ws, angs, residuals_and_jac_at(ws, angs))
             Vs = V.reshape(B, Q, P)[:, :, sub].reshape(B, -1)
             Ss = S.reshape(B, Q, P)[:, :, sub].reshape(B, -1)
-            u0, _, st0, _ = pooled_least_squares(lambda u, i: fn_sub(u, Vs[i], Ss[i]), gn, U0, spec, jnp.arange(M), M,
+            u0, _, st0, _, _ = pooled_least_squares(lambda u, i: fn_sub(u, Vs[i], Ss[i]), gn, U0, spec, jnp.arange(M), M,
                                                  lanes=_GN_LANES, max_steps=_GN_STEPS, early_stop=gn_stop_sub,
                                                  on_progress=report("first pass, on a subset of the wavelengths"))
             # the second pass starts where the first ended (from the start, where that is not finite)
             U1 = jnp.where(jnp.all(jnp.isfinite(u0), axis=-1, keepdims=True), u0, U0)
-        u1, ok1, st1, _ = pooled_least_squares(fn, gn, U1, spec, jnp.arange(M), M, lanes=_GN_LANES,
-                                               max_steps=_GN_STEPS, early_stop=gn_stop,
-                                               on_progress=report("Gauss-Newton stage"))
-        # chi^2 picks the best of several starts (with one, `errors` forms it from its residuals)
-        c21 = _blocked(jax.vmap(chi2), (u1, spec), _FIRST_BLOCK) if starts > 1 else jnp.zeros(M, dtype)
-        x, c2, ok, steps = best(u1, c21, ok1, st0 + st1)
-        return U0, x, c2, ok, steps
+        u1, ok1, st1, _, (info, early) = pooled_least_squares(fn, gn, U1, spec, jnp.arange(M), M, lanes=_GN_LANES,
+                                                              max_steps=_GN_STEPS, early_stop=gn_stop,
+                                                              on_progress=report("Gauss-Newton stage"))
+        A, c2e, usable = jax.vmap(normal_from_stop)(info)
+        have = early & usable
+        # chi^2 picks the best of several starts (with one, the stop's prediction or `finish` gives it)
+        c21 = _blocked(jax.vmap(chi2), (u1, spec), _FIRST_BLOCK) if starts > 1 else c2e
+        x, c2, ok, steps, A, have = best(u1, c21, ok1, st0 + st1, A, have)
+        return U0, x, c2, ok, steps, A, have
 
     def errors_only(V, S, state):
         """The fit of `first`, with its standard errors: where Gauss-Newton fitted every spectrum."""
         V, S = V.reshape(B, -1), S.reshape(B, -1)
-        _, x, _, ok, steps = state
-        return finish(x, ok, steps, V, S)
+        _, x, c2, ok, steps, A, have = state
+        return finish(x, ok, steps, V, S, A, c2, have)
 
     def second(V, S, state):
         """Levenberg-Marquardt from the same starts, for the spectra Gauss-Newton did not fit (the
@@ -529,11 +556,11 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         better solution of the two per spectrum, and its standard errors."""
         V, S = V.reshape(B, -1), S.reshape(B, -1)
         fn, chi2 = problems(V, S)
-        U0, x, c2, ok, steps = state
+        U0, x, c2, ok, steps, A, have = state
         pend = ~ok[spec]
         order = jnp.argsort(~pend, stable=True)
         count = jnp.sum(pend)
-        u2, ok2, st2, touched = pooled_least_squares(fn, lm, U0, spec, order, count, lanes=_LM_LANES,
+        u2, ok2, st2, touched, _ = pooled_least_squares(fn, lm, U0, spec, order, count, lanes=_LM_LANES,
                                                      max_steps=max_steps)
         c22 = _pending_map(chi2, (u2, spec), order, count, _LM_LANES, jnp.full(M, jnp.inf, dtype))
         x2, c22, ok2, st2 = best(u2, c22, ok2 & touched, st2)
@@ -542,7 +569,7 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
         c2 = jnp.where(better, c22, c2)
         steps = steps + st2
         ok = ok | ok2
-        return finish(x, ok, steps, V, S)
+        return finish(x, ok, steps, V, S, A, c2, have & ~better)
 
     options = known_options(_options(B, Q, P))
     return tuple(_Stage(f, jax.jit(f, compiler_options=options)) for f in (first, errors_only, second))
@@ -569,7 +596,8 @@ class _Stage(NamedTuple):
 
 def _pending_map(f, args, order, count, size, init):
     """`out[order[i]] = f(*args[order[i]])` for `i < count` (traced), `size` at a time, the rest of
-    `init` unchanged: the work follows `count`, not the length of `args`."""
+    `init` (an array, or a pytree of them like `f`'s output) unchanged: the work follows `count`,
+    not the length of `args`."""
     M = order.shape[0]
     size = min(size, M)
 
@@ -578,7 +606,7 @@ def _pending_map(f, args, order, count, size, init):
         idx = jax.lax.dynamic_slice(jnp.concatenate([order, order[:size]]), (i,), (size,))
         val = jax.vmap(f)(*(a[idx] for a in args))
         dst = jnp.where(i + jnp.arange(size) < count, idx, M)
-        return i + size, out.at[dst].set(val, mode="drop")
+        return i + size, jax.tree.map(lambda o, v: o.at[dst].set(v, mode="drop"), out, val)
 
     return jax.lax.while_loop(lambda c: c[0] < count, body, (jnp.asarray(0), init))[1]
 

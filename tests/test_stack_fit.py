@@ -93,6 +93,28 @@ def _model(d0=1000.0):
                                jo.Free(d0, 0.0, 2100.0), name="oxide")], jo.material("Si"))
 
 
+def _check_errors_at_the_values(fit, model, sp):
+    """The fit's chi^2/dof and covariance against those formed at its values with `jax.jacfwd` of
+    the model (an independent route to the Jacobian): where Gauss-Newton ended by its EDM test,
+    `fit_stack` forms them from its last step's Jacobian, a step of at most 1e-3 standard errors
+    before the values, which moves them by far less than 1e-3 relative."""
+    wl, ang = jnp.asarray(sp.wavelength_nm), jnp.deg2rad(jnp.asarray(sp.angle_deg))
+    S = np.asarray(sp.sigma).reshape(-1, len(sp.kinds) * len(sp.wavelength_nm))
+    V = np.asarray(sp.values).reshape(S.shape)
+    m = S.shape[1]
+    quantities = lambda x: model.with_values(list(x)).quantities(sp.kinds, wl, ang, flat=True)
+    x = np.asarray(fit.values).reshape(S.shape[0], -1)
+    p = x.shape[1]
+    M = np.asarray(jax.vmap(quantities)(jnp.asarray(x)))
+    J = np.asarray(jax.vmap(jax.jacfwd(quantities))(jnp.asarray(x))) / S[:, :, None]
+    r = M - V
+    r[:, m // 2:] = (r[:, m // 2:] + 180) % 360 - 180  # delta (the second quantity) wraps
+    chi2r = np.sum((r / S) ** 2, -1) / (m - p)
+    np.testing.assert_allclose(np.asarray(fit.chi2_reduced).reshape(-1), chi2r, rtol=1e-6)
+    cov = np.linalg.inv(np.einsum("bmi,bmj->bij", J, J)) * np.maximum(chi2r, 1)[:, None, None]
+    np.testing.assert_allclose(np.asarray(fit.covariance).reshape(cov.shape), cov, rtol=1e-3, atol=0)
+
+
 def test_recovers_thickness_from_far_starts():
     """Films from 5 nm to 2000 nm, one start (1000 nm) for all: the grid start finds each one's
     fringe, so no fit lands in a neighbouring minimum."""
@@ -139,6 +161,8 @@ def test_levenberg_marquardt_stage_runs_only_when_needed(monkeypatch):
     assert called == ["_first_stage", "_second_stage"]
     assert np.all(np.asarray(lm.converged))
     assert np.all(np.asarray(lm.num_steps) > 1)  # Gauss-Newton's one step, then Levenberg-Marquardt's
+    for fit in (ref, lm):  # standard errors from Gauss-Newton's last step; evaluated after Levenberg-Marquardt
+        _check_errors_at_the_values(fit, _model(), sp)
     for name in lm.names:
         assert np.allclose(np.asarray(lm[name]), np.asarray(ref[name]), rtol=1e-6, atol=0.01 * np.asarray(ref.stderr_of(name))), name
     d, sd = np.asarray(lm["oxide.thickness_nm"]), np.asarray(lm.stderr_of("oxide.thickness_nm"))
@@ -386,8 +410,9 @@ def test_pooled_solves_equal_one_solve_per_problem():
     for solver in (optx.GaussNewton(rtol=1e-9, atol=1e-9), optx.LevenbergMarquardt(rtol=1e-9, atol=1e-9)):
         ref = [optx.least_squares(fn, solver, y0[i], i, max_steps=12, throw=False) for i in range(23)]
         order = jnp.asarray(rng.permutation(23))
-        y, ok, steps, touched = jax.jit(lambda order: pooled_least_squares(
+        y, ok, steps, touched, info = jax.jit(lambda order: pooled_least_squares(
             fn, solver, y0, jnp.arange(23), order, 17, lanes=4, max_steps=12))(order)
+        assert info is None  # no early stop
         done = np.zeros(23, bool)
         done[np.asarray(order[:17])] = True
         np.testing.assert_array_equal(touched, done)
@@ -406,7 +431,9 @@ def test_pooled_solves_equal_one_solve_per_problem():
 def test_gauss_newton_edm_stop_ends_within_a_thousandth_of_a_standard_error():
     """With `gauss_newton_edm_stop`, each pooled Gauss-Newton solve ends at the minimum found by
     optimistix's own stopping test (steps below 1e-12 relative, far tighter) to within 1e-3 of
-    the standard errors computed there, in fewer steps on noisy data."""
+    the standard errors computed there, in fewer steps on noisy data; the normal matrix it keeps
+    is `J^T J` at the point its last step began, and its predicted sum of squares is the
+    minimum's to within the EDM tolerance."""
     import optimistix as optx
 
     from jaxoptics._pool import gauss_newton_edm_stop, pooled_least_squares
@@ -426,15 +453,20 @@ def test_gauss_newton_edm_stop_ends_within_a_thousandth_of_a_standard_error():
     gn = optx.GaussNewton(rtol=1e-9, atol=1e-9)
     run = lambda stop: jax.jit(lambda: pooled_least_squares(fn, gn, y0, jnp.arange(M), jnp.arange(M), M, lanes=8,
                                                             max_steps=100, early_stop=stop))()
-    y, ok, steps, _ = run(gauss_newton_edm_stop(1e-6, scale))
-    _, ok_c, steps_c, _ = run(None)
+    y, ok, steps, _, ((y_jac, A, c2), early) = run(gauss_newton_edm_stop(1e-6, scale, normal_matrix=True))
+    _, ok_c, steps_c, _, _ = run(None)
     assert np.all(np.asarray(ok)) and np.all(np.asarray(ok_c))
+    assert np.sum(np.asarray(early)) >= M // 2  # most end by this test, the rest by optimistix's
     for i in range(M):
         assert ref[i].result == optx.RESULTS.successful
         J = np.asarray(jax.jacfwd(fn)(ref[i].value, i))
         r = np.asarray(fn(ref[i].value, i))
         sd = np.sqrt(np.diag(np.linalg.inv(J.T @ J)) * max(1.0, r @ r / 58))
         assert np.all(np.abs(np.asarray(y[i]) - np.asarray(ref[i].value)) < 1e-3 * sd), i
+        if early[i]:
+            Jy = np.asarray(jax.jacfwd(fn)(y_jac[i], i))
+            np.testing.assert_allclose(A[i], Jy.T @ Jy, rtol=1e-10)
+            assert abs(float(c2[i]) - r @ r) <= 1e-6 * max(1.0, r @ r / 58), i
     assert np.all(np.asarray(steps) <= np.asarray(steps_c))
     assert np.mean(np.asarray(steps)) < np.mean(np.asarray(steps_c)) - 0.5
 
@@ -452,6 +484,7 @@ def test_two_pass_gauss_newton_of_a_map_equals_one_pass(monkeypatch):
     d, sd = np.asarray(two["oxide.thickness_nm"]), np.asarray(two.stderr_of("oxide.thickness_nm"))
     assert np.all(np.asarray(two.converged))
     assert np.all(np.abs(d - d_true) < 4 * sd), (d - d_true) / sd
+    _check_errors_at_the_values(two, _model(), sp)
     _stack_fit._program.cache_clear()
     monkeypatch.setattr(_stack_fit, "_QUICK_COMPILE_RESIDUALS", 10**9)
     try:
