@@ -529,3 +529,19 @@ def test_float32_fit_recovers_the_films():
     assert np.all(np.abs(d - d_true) < 4 * sd), (d - d_true) / sd
     np.testing.assert_allclose(sd, np.asarray(ref.stderr_of("oxide.thickness_nm")), rtol=0.01)
     assert np.all(np.abs(d - np.asarray(ref["oxide.thickness_nm"])) < 0.1 * sd)
+
+
+def test_wrapped_delta_residuals():
+    """Delta residuals are wrapped to the nearest multiple of 360 degrees: equal to NumPy's
+    remainder (exact) within an ulp of the input, in [-180, 180]."""
+    from jaxoptics._stack_fit import _wrap_deg
+
+    jax.config.update("jax_enable_x64", True)
+    rng = np.random.default_rng(4)
+    d = np.concatenate([rng.uniform(-2000, 2000, 10_000), [-540.0, -180.0, 0.0, 179.999, 180.0, 359.0, 360.0, 1e6 + 0.5]])
+    w = np.asarray(_wrap_deg(jnp.asarray(d)))
+    ref = np.remainder(d + 180, 360) - 180
+    assert np.all(np.abs(w) <= 180)
+    diff = np.abs(w - ref)
+    assert np.all((diff <= np.spacing(np.abs(d)) + 1e-300) | (np.abs(diff - 360) <= np.spacing(np.abs(d))))  # +-180 both allowed
+    np.testing.assert_array_equal(np.asarray(jax.grad(lambda x: _wrap_deg(x))(200.0)), 1.0)
