@@ -17,7 +17,7 @@ import numpy as np
 
 from ._dispersion import Constant, Dispersion, Free, parameter_leaves, substitute
 from ._fresnel import materialize_both
-from ._stack import stack
+from ._stack import _atan2, stack
 
 
 def _as_dispersion(m, what):
@@ -228,9 +228,9 @@ def model_quantities(res, kinds, flat_out=False):
         elif k == "S":
             v = -2 * jnp.imag(X) / tot
         elif k == "psi_deg":
-            v = jnp.degrees(jnp.arctan2(jnp.sqrt(Rp), jnp.sqrt(Rs)))
+            v = jnp.degrees(_atan2(jnp.sqrt(Rp), jnp.sqrt(Rs)))
         elif k == "delta_deg":
-            v = jnp.degrees(jnp.arctan2(get("S"), get("C")))
+            v = jnp.degrees(_atan2(get("S"), get("C")))
         elif k == "R":
             v = 0.5 * tot
         elif k == "T":
