@@ -63,6 +63,11 @@ class Dispersion:
     def nk(self, wavelength_um):  # pragma: no cover - every subclass defines it
         raise NotImplementedError
 
+    def _real(self) -> bool:
+        """Whether `k` is zero at every wavelength for every value of the free parameters (the
+        fit then differentiates the stack in the index's real part only: `_jacobian_plan`)."""
+        return False
+
     def eps(self, wavelength_um):
         """The dielectric function `eps = N^2`."""
         N = self.nk(wavelength_um)
@@ -78,6 +83,11 @@ def _energy(wavelength_um):
     return HC_EV_UM / wavelength_um
 
 
+def _fixed_zero(v):
+    """Whether a parameter is held fixed at zero."""
+    return not isinstance(v, Free) and isinstance(v, (int, float, np.integer, np.floating)) and v == 0
+
+
 def _as_params(v):
     return tuple(v) if isinstance(v, (tuple, list)) else (v,)
 
@@ -89,6 +99,9 @@ class Constant(Dispersion):
     n: Any = 1.5
     k: Any = 0.0
     _params = ("n", "k")
+
+    def _real(self):
+        return _fixed_zero(self.k)
 
     def nk(self, wavelength_um):
         lam = jnp.asarray(wavelength_um)
@@ -121,6 +134,9 @@ class Cauchy(Dispersion):
     k_exp: Any = 1.5
     E_band: Any = 3.5
     _params = ("A", "B", "C", "k_amp", "k_exp", "E_band")
+
+    def _real(self):
+        return _fixed_zero(self.k_amp)
 
     def nk(self, wavelength_um):
         lam = jnp.asarray(wavelength_um)

@@ -343,12 +343,13 @@ def test_map_progress_and_noise_free_recovery(capfd):
     assert "fit_stack: 300 of 300 spectra fitted" in capfd.readouterr().err
 
 
-@pytest.mark.parametrize("case", ["film", "mixed"])
+@pytest.mark.parametrize("case", ["film", "absorbing film", "mixed"])
 def test_jacobian_through_the_stack_inputs_equals_jacfwd(case):
     """`fit_stack`'s Jacobian (tangents through the stack's inputs, `_jacobian_plan`) equals
-    `jax.jacfwd` and `jax.jacrev` of the model and finite differences, for media with many free parameters (split into the real and
-    imaginary part of the index), media with one or two, thicknesses, an incoherent layer and
-    every kind of quantity."""
+    `jax.jacfwd` and `jax.jacrev` of the model and finite differences, for media with many free
+    parameters (split into the real and imaginary part of the index, or the real part alone where
+    `k` is held at zero), media with one or two, thicknesses, an incoherent layer and every kind of
+    quantity."""
     from jaxoptics._stack_fit import _jacobian_plan, _model_and_jacobian
 
     wl = np.linspace(300.0, 1000.0, 40)
@@ -357,6 +358,11 @@ def test_jacobian_through_the_stack_inputs_equals_jacfwd(case):
         sample = jo.Sample([jo.Layer(jo.Cauchy(A=jo.Free(1.46), B=jo.Free(0.004), C=jo.Free(1e-4)), jo.Free(480.0))],
                            jo.material("Si"))
         kinds, x = ("psi_deg", "delta_deg"), [1.46, 0.004, 1e-4, 480.0]
+        assert len(_jacobian_plan(sample).directions) == 2  # Re n of the film (k held at 0); its thickness
+    elif case == "absorbing film":  # an Urbach tail: k depends on the free parameters
+        sample = jo.Sample([jo.Layer(jo.Cauchy(A=jo.Free(1.46), B=jo.Free(0.004), k_amp=jo.Free(0.01), k_exp=jo.Free(1.2)),
+                                     jo.Free(480.0))], jo.material("Si"))
+        kinds, x = ("psi_deg", "delta_deg", "R"), [1.46, 0.004, 0.01, 1.2, 480.0]
         assert len(_jacobian_plan(sample).directions) == 3  # Re n, Im n of the film; its thickness
     else:
         tl = jo.TaucLorentz(A=jo.Free(120.0), E0=jo.Free(3.8), C=jo.Free(1.2), Eg=jo.Free(2.1), eps_inf=1.1)
