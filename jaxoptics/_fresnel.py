@@ -146,10 +146,30 @@ def _materialize_jvp(primals, tangents):
 
 @jax.custom_jvp
 def materialize_both(x):
-    """`materialize(x)` whose derivative is materialized too: in forward mode, the tangents of an
-    expensive value with several consumers are then computed once (under `vmap` over tangent
-    directions XLA otherwise fuses their whole computation into each consumer's loop)."""
-    return _materialize_parts(x)
+    """`x` computed once and stored like `materialize`, and its derivative too: in forward mode,
+    the tangents of an expensive value with several consumers are then computed once (under
+    `vmap` over tangent directions XLA otherwise fuses their whole computation into each
+    consumer's loop).
+
+    A complex `x` (and its tangent) is stored by one complex division by `1 + 0i` (`2 + 0i` where
+    a part is NaN), not part by part as `materialize` does: two real divisions are two fused
+    loops, and XLA's CPU backend computes the whole of `x` in each. The quotient is `x` except for
+    the sign of a zero part (`(a + b e) / f` with `e = 0`: `-0 + 0 = +0`) and an infinite part,
+    which makes the other part NaN, so it serves values whose consumers are indifferent to both
+    (the stack's `rp_rs` in `model_quantities`, which takes delta's sign of zero into account)."""
+    return _materialize_whole(x)
+
+
+def _materialize_whole(x):
+    if jnp.iscomplexobj(x):
+        return _divide_by_one(x, x)
+    return materialize(x)
+
+
+def _divide_by_one(t, x):
+    """`t / (1 + 0i)`, `2 + 0i` where a part of `x` is NaN (`materialize_both`)."""
+    s = jnp.where(jnp.isnan(jnp.real(x)) | jnp.isnan(jnp.imag(x)), 2, 1).astype(jnp.real(x).dtype)
+    return t / jax.lax.complex(s, jnp.zeros_like(s))
 
 
 def _materialize_parts(x):
@@ -161,19 +181,15 @@ def _materialize_parts(x):
 @materialize_both.defjvp
 def _materialize_both_jvp(primals, tangents):
     (x,), (dx,) = primals, tangents
-    return _materialize_parts(x), materialize_tangent(dx, x)
+    return _materialize_whole(x), materialize_tangent(dx, x)
 
 
 def materialize_tangent(dx, x):
-    """A tangent `dx` of `x`, stored once like `materialize`: divided by the primal's divisor (1
-    wherever `x` is a number), so it is linear in the tangent and reverse mode transposes it."""
-
-    def div(t, v):
-        return t / jnp.where(jnp.isnan(v), 2, 1).astype(t.dtype)
-
+    """A tangent `dx` of `x`, stored once like `materialize_both`: divided by the primal's divisor
+    (1 wherever `x` is a number), so it is linear in the tangent and reverse mode transposes it."""
     if jnp.iscomplexobj(dx):
-        return jax.lax.complex(div(jnp.real(dx), jnp.real(x)), div(jnp.imag(dx), jnp.imag(x)))
-    return div(dx, x)
+        return _divide_by_one(dx, x)
+    return dx / jnp.where(jnp.isnan(x), 2, 1).astype(dx.dtype)
 
 
 @jax.custom_jvp

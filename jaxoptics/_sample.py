@@ -230,7 +230,10 @@ def model_quantities(res, kinds, flat_out=False):
         elif k == "psi_deg":
             v = jnp.degrees(_atan2(jnp.sqrt(Rp), jnp.sqrt(Rs)))
         elif k == "delta_deg":
-            v = jnp.degrees(_atan2(get("S"), get("C")))
+            # in (-180, 180]: -pi (atan2 of a zero S whose sign is negative, as in a lossless
+            # stack, where X is real and its zero imaginary part carries either sign) is pi
+            a = _atan2(get("S"), get("C"))
+            v = jnp.degrees(jnp.where(a <= -jnp.pi, a + 2 * jnp.pi, a))
         elif k == "R":
             v = 0.5 * tot
         elif k == "T":

@@ -62,6 +62,20 @@ def test_quantities_agree_with_tmm_and_with_each_other():
     assert np.all((qb[0] > 0) & (qb[0] < 180)) and np.all(qb[1] > 0)
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_delta_of_a_bare_dielectric_is_180_below_brewster_and_0_beyond(dtype):
+    """A lossless interface has a real rho = r_p / r_s, its imaginary part an exact zero of either
+    sign: delta is exactly 180 degrees below Brewster's angle and 0 beyond (closed form), never
+    -180 (the documented range is (-180, 180])."""
+    jax.config.update("jax_enable_x64", dtype == jnp.float64)
+    w, a = (x.ravel() for x in np.meshgrid(np.linspace(400.0, 800.0, 9), [0.5, 20.0, 45.0, 55.0, 58.0, 62.0, 75.0, 89.0],
+                                            indexing="ij"))
+    for n in (1.5, 2.4, 4.0):
+        delta = np.asarray(jo.Sample([], jo.Constant(n)).fixed().quantities(
+            ("delta_deg",), jnp.asarray(w, dtype), jnp.asarray(np.radians(a), dtype)))[0]
+        np.testing.assert_array_equal(delta, np.where(a < math.degrees(math.atan(n)), 180.0, 0.0))
+
+
 def test_incoherent_layer_against_tmm():
     """A 1 mm glass slab (incoherent) on a coated back face, unpolarized R against tmm's inc_tmm."""
     wl = np.linspace(400.0, 800.0, 9)
