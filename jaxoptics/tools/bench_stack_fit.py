@@ -75,7 +75,6 @@ def numpy_psi_delta(x, lam_nm, ang_rad, N_sub):
 def bench_stack_fit(*, quick=False, progress=None, repeats=None):
     import jax
     import jax.numpy as jnp
-    from scipy.optimize import least_squares
 
     import jaxoptics as jo
 
@@ -156,26 +155,8 @@ def bench_stack_fit(*, quick=False, progress=None, repeats=None):
     # scipy, one spectrum at a time: from 5 nm off the true thickness (its best case: no fringe
     # search), and from the sample model's start (100 nm), as a user without a fringe search runs it
     idx = np.linspace(0, B - 1, n_scipy).astype(int)
-
-    def scipy_loop(start_nm):
-        times, ok, rec, calls = [], [], [], []
-        for i in idx:
-            count = [0]
-
-            def resid(x, y=V[i], count=count):
-                count[0] += 1
-                r = numpy_psi_delta(x, wl, ang_r, N_sub) - y
-                r[P:] = (r[P:] + 180) % 360 - 180
-                return r / sig
-
-            x0 = np.array([1.46, 0.0, 0.0, start_nm(i)])
-            t = time.perf_counter()
-            res = least_squares(resid, x0, method="lm", xtol=1e-9, ftol=1e-9)
-            times.append(time.perf_counter() - t)
-            ok.append(res.success)
-            calls.append(count[0])
-            rec.append(_recovered(res, truth[i, 3], P))
-        return float(np.median(times)), float(np.mean(ok)), float(np.mean(rec)), float(np.median(calls))
+    model_np = lambda x: numpy_psi_delta(x, wl, ang_r, N_sub)
+    scipy_loop = lambda start_nm: _scipy_loop(model_np, V, truth, sig, idx, start_nm)
 
     per, conv, rec, calls = scipy_loop(lambda i: truth[i, 3] + 5.0)
     rows.append(dict(method="scipy least_squares (lm), NumPy model, loop, start 5 nm from the truth", spectra=n_scipy, compile_s=None,
@@ -195,6 +176,33 @@ def bench_stack_fit(*, quick=False, progress=None, repeats=None):
     return rows
 
 
+def _scipy_loop(model, V, truth, sig, idx, start_nm):
+    """`least_squares(method="lm")` on the spectra `idx`, one at a time, with `model(x) -> (psi,
+    delta)` (degrees, concatenated) from `x = (A, B, C, start_nm(i))`: the median time per fit,
+    the fractions converged and recovered (`_recovered`), and the median calls of the model."""
+    from scipy.optimize import least_squares
+
+    P = V.shape[1] // 2
+    times, ok, rec, calls = [], [], [], []
+    for i in idx:
+        count = [0]
+
+        def resid(x, y=V[i], count=count):
+            count[0] += 1
+            r = model(x) - y
+            r[P:] = (r[P:] + 180) % 360 - 180  # delta wraps
+            return r / sig
+
+        x0 = np.array([1.46, 0.0, 0.0, start_nm(i)])
+        t = time.perf_counter()
+        res = least_squares(resid, x0, method="lm", xtol=1e-9, ftol=1e-9)
+        times.append(time.perf_counter() - t)
+        ok.append(res.success)
+        calls.append(count[0])
+        rec.append(_recovered(res, truth[i, 3], P))
+    return float(np.median(times)), float(np.mean(ok)), float(np.mean(rec)), float(np.median(calls))
+
+
 def _recovered(res, d_true, P):
     """Whether a scipy fit's thickness lies within 4 of its standard errors of the truth."""
     try:
@@ -209,7 +217,6 @@ def _pyelli_row(V, truth, wl, ang, si, sig, B, n_fits):
     the NumPy one: the fit a pyElli user runs per spectrum (lmfit's default method, `leastsq`, is
     the same MINPACK Levenberg-Marquardt). The substrate is pyElli's `Table` of the same Si data."""
     import elli
-    from scipy.optimize import least_squares
 
     P = len(wl)
     wl1 = wl[: P // len(ANGLES)]
@@ -231,26 +238,11 @@ def _pyelli_row(V, truth, wl, ang, si, sig, B, n_fits):
         t = time.perf_counter()
         psi_delta(truth[0])
         ts.append(time.perf_counter() - t)
-    times, ok, rec, calls = [], [], [], []
-    for i in np.linspace(0, B - 1, n_fits).astype(int):
-        count = [0]
-
-        def resid(x, y=V[i], count=count):
-            count[0] += 1
-            r = psi_delta(x) - y
-            r[P:] = (r[P:] + 180) % 360 - 180
-            return r / sig
-
-        t = time.perf_counter()
-        res = least_squares(resid, np.array([1.46, 0.0, 0.0, truth[i, 3] + 5.0]), method="lm", xtol=1e-9, ftol=1e-9)
-        times.append(time.perf_counter() - t)
-        ok.append(res.success)
-        calls.append(count[0])
-        rec.append(_recovered(res, truth[i, 3], P))
-    per = float(np.median(times))
+    per, conv, rec, calls = _scipy_loop(psi_delta, V, truth, sig, np.linspace(0, B - 1, n_fits).astype(int),
+                                        lambda i: truth[i, 3] + 5.0)
     return dict(method="scipy least_squares (lm), pyElli model, loop, start 5 nm from the truth", spectra=n_fits, compile_s=None, run_s=per * B,
-                per_spectrum_s=per, converged=float(np.mean(ok)), recovered=float(np.mean(rec)), median_stderr_nm=None,
-                model_eval_s=float(np.median(ts)), median_calls=float(np.median(calls)), agree_deg=agree)
+                per_spectrum_s=per, converged=conv, recovered=rec, median_stderr_nm=None,
+                model_eval_s=float(np.median(ts)), median_calls=calls, agree_deg=agree)
 
 
 def stack_fit_table(rows) -> str:
