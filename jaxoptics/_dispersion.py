@@ -85,7 +85,7 @@ def _energy(wavelength_um):
 
 def _fixed_zero(v):
     """Whether a parameter is held fixed at zero."""
-    return not isinstance(v, Free) and isinstance(v, (int, float, np.integer, np.floating)) and v == 0
+    return isinstance(v, (int, float, np.integer, np.floating)) and v == 0
 
 
 def _as_params(v):

@@ -18,8 +18,9 @@ loop, on fewer spectra: its model is the same to rounding, and slower to evaluat
 
 The section also times one evaluation of each model at a spectrum's points (NumPy: one call;
 jaxoptics: the model, and the model with its Jacobian as `fit_stack` forms it, 64 spectra at a
-time, in one call over 1024 spectra) and counts scipy's calls of the model per fit (those of its finite-difference Jacobian
-included), so that each fit's cost can be read in evaluations of its model.
+time, in one call over 1024 spectra) and counts scipy's calls of the model per fit (those of its
+finite-difference Jacobian included), so that each fit's cost can be read in evaluations of its
+model.
 """
 
 from __future__ import annotations
