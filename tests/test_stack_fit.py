@@ -308,6 +308,53 @@ def test_cli_fit_stack_example(capsys, tmp_path):
     assert png.stat().st_size > 20000
 
 
+def test_cli_plot_draws_the_model_between_the_measurements():
+    """`fit-stack --plot`'s curves (`_stack_fit_panels`): the model between the measured points
+    against tmm, through the model at each measured point, delta's line broken where it wraps
+    (no segment spans more than 180 degrees), and angle scans drawn over angle."""
+    from jaxoptics.__main__ import _stack_fit_panels
+
+    wl, ang = grid()
+    x = [1.452, 0.0036, 0.0, 480.0]  # the free parameters: A, B, C, thickness
+    psi, delta, _, _ = tmm_quantities(cauchy_n(wl, 1.452, 0.0036), 480.0, wl, ang)
+    sample = jo.Sample([jo.Layer(jo.Cauchy(A=jo.Free(1.46), B=jo.Free(0.0), C=jo.Free(0.0)), jo.Free(100.0, 0, 2000))],
+                       jo.material("Si"))
+    spectra = jo.make_spectra(wl, ang, {"psi_deg": psi + 0.01, "delta_deg": delta})
+    xlabel, panels = _stack_fit_panels(sample, spectra, x)
+    assert xlabel == "wavelength (nm)" and [k for k, _ in panels] == ["psi_deg", "delta_deg"]
+    for kind, curves in panels:
+        assert [c[0] for c in curves] == ["fit, 65 deg", "fit, 70 deg", "fit, 75 deg"]
+        for (label, xf, yf, xd, shown, resid), a in zip(curves, ANGLES):
+            np.testing.assert_array_equal(xd, WL)
+            ok = np.isfinite(xf)
+            assert ok.sum() == 8 * (WL.size - 1) + 1  # the data's points and 7 more in each gap
+            p_ref, d_ref, _, _ = tmm_quantities(cauchy_n(xf[ok], 1.452, 0.0036), 480.0, xf[ok], np.full(ok.sum(), a))
+            if kind == "psi_deg":
+                np.testing.assert_allclose(yf[ok], p_ref, atol=1e-9)
+                np.testing.assert_allclose(resid, -0.01, atol=1e-9)
+            else:
+                np.testing.assert_allclose((yf[ok] - d_ref + 180) % 360 - 180, 0, atol=1e-8)
+                assert np.all((yf[ok] >= 0) & (yf[ok] < 360))
+                for seg in np.split(yf, np.flatnonzero(np.isnan(yf))):
+                    seg = seg[np.isfinite(seg)]
+                    assert np.all(np.abs(np.diff(seg)) < 180)
+                np.testing.assert_allclose(resid, 0, atol=1e-8)
+            # the line passes through the model at every measured point (data + residual)
+            at = np.searchsorted(xf[ok], xd)
+            np.testing.assert_allclose(yf[ok][at], shown + resid, atol=1e-9)
+    # this film's delta wraps at 70 and 75 degrees, not at 65: its lines are broken there alone
+    assert [int(np.isnan(c[2]).sum()) for c in panels[1][1]] == [0, 1, 1]
+    # an angle scan at one wavelength is drawn over angle
+    a = np.linspace(45.0, 80.0, 15)
+    psi1, delta1, _, _ = tmm_quantities(cauchy_n(np.full(15, 632.8), 1.452, 0.0036), 480.0, np.full(15, 632.8), a)
+    xlabel, panels = _stack_fit_panels(sample, jo.make_spectra(np.full(15, 632.8), a, {"psi_deg": psi1}), x)
+    (label, xf, yf, xd, shown, resid), = panels[0][1]
+    assert xlabel == "angle of incidence (deg)" and label == "fit, 632.8 nm"
+    np.testing.assert_array_equal(xd, a)
+    np.testing.assert_allclose(yf, tmm_quantities(cauchy_n(np.full(xf.size, 632.8), 1.452, 0.0036), 480.0,
+                                                  np.full(xf.size, 632.8), xf)[0], atol=1e-9)
+
+
 def test_model_file_format_and_errors(tmp_path, capsys):
     p = tmp_path / "m.toml"
     p.write_text("""
