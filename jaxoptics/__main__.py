@@ -202,92 +202,18 @@ def _fit_stack(args) -> int:
     if not bool(np.all(np.asarray(fit.converged))):
         print("warning: some fits did not converge", file=sys.stderr)
     if args.plot:
-        _plot_stack_fit(sample, spectra, fit, args.plot, str(data_path))
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from ._plot import plot_stack_fit
+
+        fig = plot_stack_fit(sample, spectra, fit, title=str(data_path))
+        fig.savefig(args.plot, dpi=120)
+        plt.close(fig)
         print(f"plot saved to {args.plot}")
     return 0
-
-
-def _stack_fit_panels(sample, spectra, x, site=0, fine=8):
-    """What `fit-stack --plot` draws for one site of a fit with parameter values `x`: `(xlabel,
-    panels)`, a panel per measured quantity, each a list of curves `(label, x_fine, model_fine,
-    x_data, shown, residual)`.
-
-    A curve is one angle of incidence over wavelength, or one wavelength over angle for data with
-    fewer wavelengths than angles (angle scans). The model is evaluated on the data's points and
-    `fine - 1` more points in each gap between them (one call for all curves), so that the drawn
-    line follows the model between measurements. `delta_deg` is drawn in `[0, 360)`: the line
-    breaks (a NaN) where the model wraps, and each measurement is drawn on the model's branch
-    (`shown = model - residual`, with the residual in `[-180, 180)`)."""
-    import jax.numpy as jnp
-    import numpy as np
-
-    wl, ang = np.asarray(spectra.wavelength_nm, float), np.asarray(spectra.angle_deg, float)
-    V = np.asarray(spectra.values).reshape((-1,) + spectra.values.shape[-2:])[site]
-    over_angle = np.unique(wl).size < np.unique(ang).size
-    xs, keys = (ang, wl) if over_angle else (wl, ang)
-    groups = []
-    for key in np.unique(keys):
-        m = np.flatnonzero(keys == key)
-        m = m[np.argsort(xs[m], kind="stable")]
-        u = np.unique(xs[m])
-        dense = np.linspace(u[0], u[-1], fine * (u.size - 1) + 1) if u.size > 1 else u
-        groups.append((key, m, np.unique(np.concatenate([u, dense]))))
-    # the data's points, then every curve's fine points, evaluated together
-    xf = np.concatenate([g[2] for g in groups])
-    kf = np.concatenate([np.full(g[2].size, g[0]) for g in groups])
-    wl_all = np.concatenate([wl, kf if over_angle else xf])
-    ang_all = np.concatenate([ang, xf if over_angle else kf])
-    model = np.asarray(sample.with_values([float(v) for v in x]).quantities(
-        spectra.kinds, jnp.asarray(wl_all), jnp.asarray(np.radians(ang_all))))
-    at_data, at_fine = model[:, : wl.size], model[:, wl.size:]
-    panels = []
-    for q, kind in enumerate(spectra.kinds):
-        resid, curve, fine_q = at_data[q] - V[q], at_data[q], at_fine[q]
-        if kind == "delta_deg":
-            resid = (resid + 180) % 360 - 180
-            curve, fine_q = curve % 360, fine_q % 360
-        shown = curve - resid
-        curves, start = [], 0
-        for key, m, xg in groups:
-            yg = fine_q[start:start + xg.size]
-            start += xg.size
-            if kind == "delta_deg":  # break the line where the model wraps
-                cut = np.flatnonzero(np.abs(np.diff(yg)) > 180) + 1
-                xg, yg = np.insert(xg, cut, np.nan), np.insert(yg, cut, np.nan)
-            label = f"fit, {key:g} nm" if over_angle else f"fit, {key:g} deg"
-            curves.append((label, xg, yg, xs[m], shown[m], resid[m]))
-        panels.append((kind, curves))
-    return ("angle of incidence (deg)" if over_angle else "wavelength (nm)"), panels
-
-
-def _plot_stack_fit(sample, spectra, fit, out, title):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    site = 0
-    x = np.asarray(fit.values).reshape(-1, len(fit.names))[site]
-    xlabel, panels = _stack_fit_panels(sample, spectra, x, site)
-    Q = len(panels)
-    fig, axes = plt.subplots(2, Q, figsize=(5 * Q, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]}, squeeze=False)
-    for q, (kind, curves) in enumerate(panels):
-        for label, xf, yf, xd, shown, resid in curves:
-            line, = axes[0, q].plot(xf, yf, lw=1.2, label=label)
-            axes[0, q].plot(xd, shown, ".", ms=2.5, color=line.get_color())
-            axes[1, q].plot(xd, resid, ".", ms=2.5, color=line.get_color())
-        axes[0, q].set_ylabel(kind)
-        axes[1, q].set_ylabel("model - data")
-        axes[1, q].set_xlabel(xlabel)
-        axes[1, q].axhline(0, color="k", lw=0.5)
-    axes[0, 0].legend(fontsize=8)
-    params = ", ".join(f"{n} = {v:.5g}" for n, v in zip(fit.names, x))
-    where = f" (site {spectra.sites[site] if spectra.sites else site} of {np.asarray(fit.values).size // len(fit.names)})" if spectra.batch_shape else ""
-    fig.suptitle(f"{title}{where}\n{params}", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(out, dpi=120)
-    plt.close(fig)
 
 
 def _plot_fits(fits, args, title):

@@ -64,9 +64,11 @@ def test_site_builds_strict(tmp_path):
     assert not absent, absent
 
 
-def test_readme_python_examples_run():
-    """The README's Python blocks, run in order in a fresh process (as a user would paste them)."""
+def test_readme_python_examples_run(tmp_path):
+    """The README's Python blocks, run in order in a fresh process (as a user would paste them), in
+    an empty directory (the figure they save lands there)."""
     text = (ROOT / "README.md").read_text()
     code = "\n".join(re.findall(r"```python\n(.*?)```", text, flags=re.S))
-    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    res = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
+    assert (tmp_path / "fit.png").stat().st_size > 20000

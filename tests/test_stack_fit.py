@@ -308,11 +308,11 @@ def test_cli_fit_stack_example(capsys, tmp_path):
     assert png.stat().st_size > 20000
 
 
-def test_cli_plot_draws_the_model_between_the_measurements():
-    """`fit-stack --plot`'s curves (`_stack_fit_panels`): the model between the measured points
-    against tmm, through the model at each measured point, delta's line broken where it wraps
-    (no segment spans more than 180 degrees), and angle scans drawn over angle."""
-    from jaxoptics.__main__ import _stack_fit_panels
+def test_plot_draws_the_model_between_the_measurements():
+    """`plot_stack_fit`'s curves (`_plot._curves`): the model between the measured points against
+    tmm, through the model at each measured point, delta's line broken where it wraps (no segment
+    spans more than 180 degrees), and angle scans drawn over angle."""
+    from jaxoptics._plot import _curves
 
     wl, ang = grid()
     x = [1.452, 0.0036, 0.0, 480.0]  # the free parameters: A, B, C, thickness
@@ -320,12 +320,13 @@ def test_cli_plot_draws_the_model_between_the_measurements():
     sample = jo.Sample([jo.Layer(jo.Cauchy(A=jo.Free(1.46), B=jo.Free(0.0), C=jo.Free(0.0)), jo.Free(100.0, 0, 2000))],
                        jo.material("Si"))
     spectra = jo.make_spectra(wl, ang, {"psi_deg": psi + 0.01, "delta_deg": delta})
-    xlabel, panels = _stack_fit_panels(sample, spectra, x)
+    xlabel, panels = _curves(sample, spectra, x)
     assert xlabel == "wavelength (nm)" and [k for k, _ in panels] == ["psi_deg", "delta_deg"]
     for kind, curves in panels:
         assert [c[0] for c in curves] == ["fit, 65 deg", "fit, 70 deg", "fit, 75 deg"]
-        for (label, xf, yf, xd, shown, resid), a in zip(curves, ANGLES):
+        for (label, xf, yf, xd, shown, resid, idx), a in zip(curves, ANGLES):
             np.testing.assert_array_equal(xd, WL)
+            np.testing.assert_array_equal(ang[idx], a)
             ok = np.isfinite(xf)
             assert ok.sum() == 8 * (WL.size - 1) + 1  # the data's points and 7 more in each gap
             p_ref, d_ref, _, _ = tmm_quantities(cauchy_n(xf[ok], 1.452, 0.0036), 480.0, xf[ok], np.full(ok.sum(), a))
@@ -347,12 +348,51 @@ def test_cli_plot_draws_the_model_between_the_measurements():
     # an angle scan at one wavelength is drawn over angle
     a = np.linspace(45.0, 80.0, 15)
     psi1, delta1, _, _ = tmm_quantities(cauchy_n(np.full(15, 632.8), 1.452, 0.0036), 480.0, np.full(15, 632.8), a)
-    xlabel, panels = _stack_fit_panels(sample, jo.make_spectra(np.full(15, 632.8), a, {"psi_deg": psi1}), x)
-    (label, xf, yf, xd, shown, resid), = panels[0][1]
+    xlabel, panels = _curves(sample, jo.make_spectra(np.full(15, 632.8), a, {"psi_deg": psi1}), x)
+    (label, xf, yf, xd, shown, resid, _), = panels[0][1]
     assert xlabel == "angle of incidence (deg)" and label == "fit, 632.8 nm"
     np.testing.assert_array_equal(xd, a)
     np.testing.assert_allclose(yf, tmm_quantities(cauchy_n(np.full(xf.size, 632.8), 1.452, 0.0036), 480.0,
                                                   np.full(xf.size, 632.8), xf)[0], atol=1e-9)
+
+
+def test_plot_stack_fit_figure_sites_and_bad_arguments():
+    """`plot_stack_fit` on a map: the site chosen by position or label, residuals over sigma on
+    request, and clear errors for a bad site, a bad residual kind, or normalized residuals without
+    sigma."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    wl, ang = grid()
+    sample = jo.Sample([jo.Layer(jo.Cauchy(A=1.452, B=0.0036), jo.Free(100.0, 0, 2000), name="film")], jo.material("Si"))
+    clean = np.asarray(sample.with_values([480.0]).quantities(("psi_deg",), jnp.asarray(wl), jnp.asarray(np.radians(ang))))[0]
+    V = np.stack([clean, clean + 0.02])  # site "b": the model 0.02 degrees below the data
+    spectra = jo.Spectra(wl, ang, ("psi_deg",), V[:, None], np.full((2, 1, wl.size), 0.01), ("a", "b"))
+
+    class Fit:  # the fields of a StackFit that the plot reads: both sites at the truth
+        names = ("film.thickness_nm",)
+        values = np.array([[480.0], [480.0]])
+
+    for site in (1, "b", -1):
+        fig = jo.plot_stack_fit(sample, spectra, Fit, site=site, residuals="normalized")
+        ax = fig.axes[1]
+        assert ax.get_ylabel() == "(model - data) / sigma" and "(site b of 2)" in fig._suptitle.get_text()
+        for line in ax.get_lines()[:-1]:  # the last is the zero line
+            np.testing.assert_allclose(line.get_ydata(), -2.0, atol=1e-9)
+        plt.close(fig)
+    fig = jo.plot_stack_fit(sample, spectra, Fit)
+    assert fig.axes[1].get_ylabel() == "model - data" and "(site a of 2)" in fig._suptitle.get_text()
+    np.testing.assert_allclose(fig.axes[1].get_lines()[0].get_ydata(), 0, atol=1e-9)
+    plt.close(fig)
+    for kw, msg in [(dict(site=2), r"site must be a position in 0..1 or a site label, got 2"),
+                    (dict(site="z"), r"site 'z' is not a site of these spectra \(sites: a, b\)"),
+                    (dict(residuals="relative"), r"residuals must be 'difference' or 'normalized', got 'relative'")]:
+        with pytest.raises(ValueError, match=msg):
+            jo.plot_stack_fit(sample, spectra, Fit, **kw)
+    with pytest.raises(ValueError, match="residuals='normalized' needs the spectra's sigma"):
+        jo.plot_stack_fit(sample, spectra._replace(sigma=None), Fit, residuals="normalized")
 
 
 def test_model_file_format_and_errors(tmp_path, capsys):

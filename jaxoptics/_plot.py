@@ -1,0 +1,124 @@
+"""Figures of layered-sample fits: the measured quantities with the fitted model and the residuals
+(`plot_stack_fit`, which `python -m jaxoptics fit-stack --plot` draws). matplotlib is imported when a figure is drawn."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from ._sample import Sample
+    from ._spectra import Spectra
+    from ._stack_fit import StackFit
+
+
+def _curves(sample, spectra, values, site=0, fine=8):
+    """The curves of a fit of `sample` to one site of `spectra` with free parameters `values` (in
+    the order of `sample.free_names()`): `(xlabel, panels)`, one panel `(kind, curves)` per
+    measured quantity, each curve a tuple `(label, x_model, model, x_data, shown, residual,
+    index)`, `index` the positions of its points among the spectra's points.
+
+    A curve is one angle of incidence over wavelength, or one wavelength over angle for data with
+    fewer distinct wavelengths than angles (angle scans). The model is evaluated (in one call for
+    all curves) at the data's points and at `fine - 1` more points in each gap between them, so
+    that a line through `(x_model, model)` follows the model between measurements. `residual` is
+    model minus data at `x_data`. `delta_deg` is given in `[0, 360)`: `model` holds a NaN where
+    the model wraps (a line drawn through it breaks there instead of crossing the axes), the
+    residual is taken in `[-180, 180)` and `shown = model - residual` places each measurement on
+    the model's branch. For other quantities `shown` is the data."""
+    import jax.numpy as jnp
+
+    wl, ang = np.asarray(spectra.wavelength_nm, float), np.asarray(spectra.angle_deg, float)
+    V = np.asarray(spectra.values).reshape((-1,) + spectra.values.shape[-2:])[_site_index(spectra, site)]
+    over_angle = np.unique(wl).size < np.unique(ang).size
+    xs, keys = (ang, wl) if over_angle else (wl, ang)
+    groups = []
+    for key in np.unique(keys):
+        m = np.flatnonzero(keys == key)
+        m = m[np.argsort(xs[m], kind="stable")]
+        u = np.unique(xs[m])
+        between = np.linspace(u[0], u[-1], fine * (u.size - 1) + 1) if u.size > 1 else u
+        groups.append((key, m, np.unique(np.concatenate([u, between]))))
+    xf = np.concatenate([g[2] for g in groups])
+    kf = np.concatenate([np.full(g[2].size, g[0]) for g in groups])
+    wl_all = np.concatenate([wl, kf if over_angle else xf])
+    ang_all = np.concatenate([ang, xf if over_angle else kf])
+    model = np.asarray(sample.with_values([float(v) for v in np.asarray(values).reshape(-1)]).quantities(
+        spectra.kinds, jnp.asarray(wl_all), jnp.asarray(np.radians(ang_all))))
+    at_data, at_fine = model[:, : wl.size], model[:, wl.size:]
+    panels = []
+    for q, kind in enumerate(spectra.kinds):
+        resid, curve, fine_q = at_data[q] - V[q], at_data[q], at_fine[q]
+        if kind == "delta_deg":
+            resid = (resid + 180) % 360 - 180
+            curve, fine_q = curve % 360, fine_q % 360
+        shown = curve - resid
+        curves, start = [], 0
+        for key, m, xg in groups:
+            yg = fine_q[start:start + xg.size]
+            start += xg.size
+            if kind == "delta_deg":
+                cut = np.flatnonzero(np.abs(np.diff(yg)) > 180) + 1
+                xg, yg = np.insert(xg, cut, np.nan), np.insert(yg, cut, np.nan)
+            label = f"fit, {key:g} nm" if over_angle else f"fit, {key:g} deg"
+            curves.append((label, xg, yg, xs[m], shown[m], resid[m], m))
+        panels.append((kind, curves))
+    return ("angle of incidence (deg)" if over_angle else "wavelength (nm)"), panels
+
+
+def plot_stack_fit(sample: Sample, spectra: Spectra, fit: StackFit, *, site: int | str = 0, residuals: str = "difference",
+                   fine: int = 8, title: str | None = None) -> Figure:
+    """A matplotlib figure of the fit `fit` (a `StackFit` of `sample` to `spectra`) at one site:
+    for each measured quantity, the data (dots) and the model (lines, drawn between the measured
+    points too, with delta's line broken where it wraps) above, the residuals below; the fitted values in the title.
+
+    - `site`: the map point, by position or by label (`spectra.sites`); ignored for one spectrum.
+    - `residuals`: `"difference"` (model - data, in the quantity's unit) or `"normalized"`
+      (model - data over sigma; needs `spectra.sigma`).
+    - `fine`: the model's points per gap between measured points.
+
+    Returns the `Figure` (made with `pyplot`, so a notebook shows it); save it with `savefig`."""
+    import matplotlib.pyplot as plt
+
+    if residuals not in ("difference", "normalized"):
+        raise ValueError(f"residuals must be 'difference' or 'normalized', got {residuals!r}")
+    if residuals == "normalized" and spectra.sigma is None:
+        raise ValueError("residuals='normalized' needs the spectra's sigma; these spectra have none")
+    k = _site_index(spectra, site)
+    x = np.asarray(fit.values).reshape(-1, len(fit.names))[k]
+    xlabel, panels = _curves(sample, spectra, x, k, fine)
+    S = None if spectra.sigma is None else np.asarray(spectra.sigma).reshape((-1,) + spectra.values.shape[-2:])[k]
+    Q = len(panels)
+    fig, axes = plt.subplots(2, Q, figsize=(5 * Q, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]}, squeeze=False)
+    for q, (kind, curves) in enumerate(panels):
+        for label, xf, yf, xd, shown, resid, m in curves:
+            line, = axes[0, q].plot(xf, yf, lw=1.2, label=label)
+            axes[0, q].plot(xd, shown, ".", ms=2.5, color=line.get_color())
+            axes[1, q].plot(xd, resid / S[q][m] if residuals == "normalized" else resid, ".", ms=2.5, color=line.get_color())
+        axes[0, q].set_ylabel(kind)
+        axes[1, q].set_ylabel("(model - data) / sigma" if residuals == "normalized" else "model - data")
+        axes[1, q].set_xlabel(xlabel)
+        axes[1, q].axhline(0, color="k", lw=0.5)
+    axes[0, 0].legend(fontsize=8)
+    params = ", ".join(f"{n} = {v:.5g}" for n, v in zip(fit.names, x))
+    n_sites = np.asarray(fit.values).size // len(fit.names)
+    where = f" (site {spectra.sites[k] if spectra.sites else k} of {n_sites})" if spectra.batch_shape else ""
+    fig.suptitle(f"{title or spectra.path or 'layered-sample fit'}{where}\n{params}", fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def _site_index(spectra, site):
+    """The position of `site` (a position or a label of `spectra.sites`) among the spectra's sites."""
+    n = int(np.prod(spectra.batch_shape)) if spectra.batch_shape else 1
+    if isinstance(site, str):
+        if not spectra.sites or site not in spectra.sites:
+            some = "" if not spectra.sites else f" (sites: {', '.join(spectra.sites[:5])}{', ...' if len(spectra.sites) > 5 else ''})"
+            raise ValueError(f"site {site!r} is not a site of these spectra{some}")
+        return spectra.sites.index(site)
+    if not isinstance(site, (int, np.integer)) or not -n <= site < n:
+        raise ValueError(f"site must be a position in 0..{n - 1} or a site label, got {site!r}")
+    return int(site) % n
