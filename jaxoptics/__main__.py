@@ -212,7 +212,16 @@ def _fit_stack(args) -> int:
         fig = plot_stack_fit(sample, spectra, fit, title=str(data_path))
         fig.savefig(args.plot, dpi=120)
         plt.close(fig)
-        print(f"plot saved to {args.plot}")
+        print(f"plot saved to {args.plot}" + (f" (site {spectra.sites[0] if spectra.sites else 0})" if spectra.batch_shape else ""))
+        if spectra.batch_shape:
+            from ._plot import plot_stack_map
+
+            out = Path(args.plot)
+            out = out.with_name(out.stem + "_map" + (out.suffix or ".png"))
+            fig = plot_stack_map(spectra, fit)
+            fig.savefig(out, dpi=120)
+            plt.close(fig)
+            print(f"maps of the fitted parameters saved to {out}")
     return 0
 
 
@@ -312,7 +321,8 @@ def main(argv=None) -> int:
     p.add_argument("--model", metavar="MODEL.toml", help="the sample: layers, materials, free parameters (format: docs/layered-fits)")
     p.add_argument("--example", action="store_true", help="the bundled example: psi/delta of a thermal SiO2 film on Si")
     p.add_argument("--starts", type=int, default=1, help="grid points refined per spectrum (default 1)")
-    p.add_argument("--plot", metavar="OUT.png", help="save the measured and fitted spectra with residuals")
+    p.add_argument("--plot", metavar="OUT.png", help="save the measured and fitted spectra with residuals (a map's first site), "
+                                                     "and for a map the fitted parameters over it as OUT_map.png")
     p.add_argument("--out", metavar="RESULTS.csv", help="per-site values and errors of a map")
     p.add_argument("--no-cache", action="store_true", help="do not use the compilation cache (see `fit --help`)")
     p.set_defaults(func=_fit_stack)

@@ -1,5 +1,6 @@
 """Figures of layered-sample fits: the measured quantities with the fitted model and the residuals
-(`plot_stack_fit`, which `python -m jaxoptics fit-stack --plot` draws). matplotlib is imported when a figure is drawn."""
+(`plot_stack_fit`), and the fitted parameters over a map (`plot_stack_map`); `python -m jaxoptics
+fit-stack --plot` draws them. matplotlib is imported when a figure is drawn."""
 
 from __future__ import annotations
 
@@ -122,3 +123,67 @@ def _site_index(spectra, site):
     if not isinstance(site, (int, np.integer)) or not -n <= site < n:
         raise ValueError(f"site must be a position in 0..{n - 1} or a site label, got {site!r}")
     return int(site) % n
+
+
+def plot_stack_map(spectra: Spectra, fit: StackFit, *, names: tuple | list | None = None) -> Figure:
+    """A matplotlib figure of a map fit (`fit_stack` on `spectra` with sites): for each free
+    parameter (or those in `names`) its fitted value and its standard error over the map, and
+    `chi2_reduced`; sites that did not converge are marked with a red x.
+
+    With site positions (`spectra.site_xy`: the `x_mm`, `y_mm` columns) each panel is a map over
+    the sample, colour interpolated linearly between the sites (over their Delaunay triangles;
+    sites on one line are drawn as dots). Without them, each panel plots the quantity against the
+    site's position in the file.
+
+    Returns the `Figure` (made with `pyplot`, so a notebook shows it); save it with `savefig`."""
+    import matplotlib.pyplot as plt
+
+    if not spectra.batch_shape:
+        raise ValueError("plot_stack_map draws maps: these spectra are one spectrum (no sites); see plot_stack_fit")
+    names = list(fit.names) if names is None else list(names)
+    unknown = [n for n in names if n not in fit.names]
+    if unknown:
+        raise ValueError(f"{unknown} are not free parameters of this fit; they are {', '.join(fit.names)}")
+    n = int(np.prod(spectra.batch_shape))
+    vals = np.asarray(fit.values, np.float64).reshape(n, -1)
+    sds = np.asarray(fit.stderr, np.float64).reshape(n, -1)
+    panels = []
+    for name in names:
+        k = list(fit.names).index(name)
+        panels += [(name, vals[:, k], "viridis"), (f"stderr of {name}", sds[:, k], "magma")]
+    panels.append(("chi2_reduced", np.asarray(fit.chi2_reduced, np.float64).reshape(n), "cividis"))
+    failed = ~np.asarray(fit.converged, bool).reshape(n)
+    xy = None if spectra.site_xy is None else np.asarray(spectra.site_xy, np.float64).reshape(n, 2)
+    tri = None
+    if xy is not None and n >= 3:
+        import matplotlib.tri as mtri
+
+        try:
+            tri = mtri.Triangulation(xy[:, 0], xy[:, 1])
+        except (ValueError, RuntimeError):  # fewer than three distinct sites, or all on one line
+            tri = None
+    rows = (len(panels) + 1) // 2
+    fig, axes = plt.subplots(rows, 2, figsize=(10, 3.8 * rows), squeeze=False)
+    for ax, (title, z, cmap) in zip(axes.flat, panels):
+        if xy is None:
+            ax.plot(np.arange(n), z, ".", ms=3)
+            ax.plot(np.flatnonzero(failed), z[failed], "x", color="red", ms=6)
+            ax.set_xlabel("site (position in the file)")
+        else:
+            finite = np.isfinite(z)
+            if tri is not None and finite.all():
+                art = ax.tripcolor(tri, z, shading="gouraud", cmap=cmap)
+            else:
+                art = ax.scatter(xy[:, 0], xy[:, 1], c=np.where(finite, z, np.nan), cmap=cmap, s=12)
+            fig.colorbar(art, ax=ax, shrink=0.85)
+            ax.plot(xy[failed, 0], xy[failed, 1], "x", color="red", ms=6)
+            ax.set_aspect("equal")
+            ax.set_xlabel("x (mm)")
+            ax.set_ylabel("y (mm)")
+        ax.set_title(title, fontsize=10)
+    for ax in axes.flat[len(panels):]:
+        ax.set_visible(False)
+    note = f"; {int(failed.sum())} not converged (x)" if failed.any() else ""
+    fig.suptitle(f"{spectra.path or 'map fit'}: {n} sites{note}", fontsize=9)
+    fig.tight_layout()
+    return fig

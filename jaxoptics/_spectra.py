@@ -49,6 +49,8 @@ class Spectra(NamedTuple):
     - `sigma`: `(..., Q, P)` standard deviations, or `None` when the data give none.
     - `sites`: the site labels of a map, in the order of the leading axis, or `None`.
     - `path`: the file read, or `None`.
+    - `site_xy`: `(n_sites, 2)`, the position of each site on the sample in mm (`x_mm`, `y_mm`
+      columns), or `None`.
     """
 
     wavelength_nm: np.ndarray
@@ -58,15 +60,19 @@ class Spectra(NamedTuple):
     sigma: np.ndarray | None = None
     sites: tuple | None = None
     path: str | None = None
+    site_xy: np.ndarray | None = None
 
     @property
     def batch_shape(self):
         return self.values.shape[:-2]
 
 
-def make_spectra(wavelength_nm: Float[ArrayLike, " P"], angle_deg: Float[ArrayLike, "#P"], values: dict, *, sigma: dict | None = None) -> Spectra:
+def make_spectra(wavelength_nm: Float[ArrayLike, " P"], angle_deg: Float[ArrayLike, "#P"], values: dict, *, sigma: dict | None = None,
+                 sites: tuple | None = None, site_xy: Float[ArrayLike, "n_sites 2"] | None = None) -> Spectra:
     """Build `Spectra` from arrays: `values` maps kind names (see `KINDS`) to arrays `(..., P)`,
-    `sigma` (optional) maps the same names to standard deviations of the same shapes."""
+    `sigma` (optional) maps the same names to standard deviations of the same shapes. For a map
+    (leading axes), `sites` labels its sites and `site_xy` gives their positions in mm, both in
+    the order of the flattened leading axes."""
     w = np.asarray(wavelength_nm, np.float64).reshape(-1)
     a = np.broadcast_to(np.asarray(angle_deg, np.float64), w.shape).copy()
     if not values:
@@ -84,7 +90,18 @@ def make_spectra(wavelength_nm: Float[ArrayLike, " P"], angle_deg: Float[ArrayLi
             raise ValueError(f"sigma must give the same quantities as values: {sorted(kinds)}, got {sorted(sigma)}")
         S = np.stack([np.broadcast_to(np.asarray(sigma[k], np.float64), V.shape[:-2] + V.shape[-1:]) for k in kinds], axis=-2)
     _check_values(w, a, kinds, V, S, None)
-    return Spectra(w, a, kinds, V, S)
+    n = int(np.prod(V.shape[:-2]))
+    if (sites is not None or site_xy is not None) and V.ndim < 3:
+        raise ValueError("sites and site_xy describe a map: give values with leading (site) axes")
+    if sites is not None:
+        sites = tuple(str(x) for x in sites)
+        if len(sites) != n or len(set(sites)) != n:
+            raise ValueError(f"sites must be {n} distinct labels (one per spectrum), got {len(sites)} ({len(set(sites))} distinct)")
+    if site_xy is not None:
+        site_xy = np.asarray(site_xy, np.float64)
+        if site_xy.shape != (n, 2) or not np.all(np.isfinite(site_xy)):
+            raise ValueError(f"site_xy must be finite positions of shape ({n}, 2), got shape {site_xy.shape}")
+    return Spectra(w, a, kinds, V, S, sites, None, site_xy)
 
 
 def _check_values(w, a, kinds, V, S, where):
@@ -110,11 +127,13 @@ def load_spectra(path: str | os.PathLike) -> Spectra:
       normalized Mueller matrix `m11 ... m44` (converted to `N, C, S`, see the module docstring);
     - `sigma_<quantity>` (e.g. `sigma_psi_deg`), optional, for each measured quantity or none;
     - `site`, optional: a label of the map point; every site must list the same
-      `(wavelength, angle)` points in the same order.
+      `(wavelength, angle)` points in the same order;
+    - `x_mm`, `y_mm`, optional (both or neither, with `site`): the site's position on the sample,
+      the same on every row of a site (`Spectra.site_xy`; `plot_stack_map` draws maps with them).
 
     Errors name the file, the line and the column: a cell that is not a number, a row with NaN
     (rejected, with its line), a row of the wrong length, an unknown column, angles outside
-    `[0, 90)`, sites with different points.
+    `[0, 90)`, sites with different points, a site whose rows give different positions.
     """
     path = Path(path)
     try:
@@ -127,12 +146,12 @@ def load_spectra(path: str | os.PathLike) -> Spectra:
     hline, header_text = lines[0]
     header = [h.strip() for h in next(csv.reader([header_text]))]
     for j, h in enumerate(header, 1):
-        ok = h in KINDS or h in _MUELLER or h in ("wavelength_nm", "wavelength_um", "angle_deg", "site") or (
+        ok = h in KINDS or h in _MUELLER or h in ("wavelength_nm", "wavelength_um", "angle_deg", "site", "x_mm", "y_mm") or (
             h.startswith("sigma_") and h[6:] in KINDS + _MUELLER)
         if not ok:
             hint = _NEAR.get(h.lower())
             hint = f" (did you mean {hint}?)" if hint else ""
-            _fail(path, hline, f"column {j} {h!r} is not a known column{hint}; known: wavelength_nm | wavelength_um, angle_deg, site, "
+            _fail(path, hline, f"column {j} {h!r} is not a known column{hint}; known: wavelength_nm | wavelength_um, angle_deg, site, x_mm, y_mm, "
                                f"{', '.join(KINDS)}, m11..m44, sigma_<quantity>")
     if len(set(header)) != len(header):
         _fail(path, hline, f"a column name appears twice in {header}")
@@ -141,6 +160,10 @@ def load_spectra(path: str | os.PathLike) -> Spectra:
         _fail(path, hline, "give exactly one of the columns wavelength_nm, wavelength_um")
     if "angle_deg" not in header:
         _fail(path, hline, "missing column angle_deg (angle of incidence in degrees)")
+    if ("x_mm" in header) != ("y_mm" in header):
+        _fail(path, hline, "give both site position columns x_mm and y_mm, or neither")
+    if "x_mm" in header and "site" not in header:
+        _fail(path, hline, "x_mm and y_mm give the positions of sites: add a site column")
     measured = [h for h in header if h in KINDS or h in _MUELLER]
     if not measured:
         _fail(path, hline, f"no measured quantity; give one or more of {', '.join(KINDS)} or m11..m44")
@@ -216,6 +239,7 @@ def load_spectra(path: str | os.PathLike) -> Spectra:
     S = np.stack([sigmas[k] for k in kinds]) if sigmas else None
     a = A["angle_deg"]
     sites: tuple | None = None
+    xy = None
     if site_col:
         labels = list(dict.fromkeys(site_col))
         idx = [np.flatnonzero(np.asarray(site_col) == lab) for lab in labels]
@@ -224,26 +248,38 @@ def load_spectra(path: str | os.PathLike) -> Spectra:
             if len(ix) != P or not (np.array_equal(wl[ix], wl[idx[0]]) and np.array_equal(a[ix], a[idx[0]])):
                 _fail(path, lines_arr[ix[0]], f"site {lab!r} does not list the same (wavelength, angle) points, in the same order, "
                       f"as site {labels[0]!r}")
+        if "x_mm" in A:
+            for lab, ix in zip(labels, idx):
+                for c in ("x_mm", "y_mm"):
+                    moved = np.flatnonzero(A[c][ix] != A[c][ix[0]])
+                    if moved.size:
+                        r = ix[moved[0]]
+                        _fail(path, lines_arr[r], f"column {header.index(c) + 1} ({c}) = {A[c][r]}: site {lab!r} is at {c} = "
+                              f"{A[c][ix[0]]} on line {lines_arr[ix[0]]}; a site has one position")
+            xy = np.stack([[A["x_mm"][ix[0]], A["y_mm"][ix[0]]] for ix in idx])
         V = np.stack([V[:, ix] for ix in idx])
         S = None if S is None else np.stack([S[:, ix] for ix in idx])
         wl, a, sites = wl[idx[0]], a[idx[0]], tuple(labels)
-    return Spectra(wl, a, kinds, V, S, sites, str(path))
+    return Spectra(wl, a, kinds, V, S, sites, str(path), xy)
 
 
 def save_spectra(path: str | os.PathLike, spectra: Spectra) -> None:
-    """Write `Spectra` as CSV in the format `load_spectra` reads (a `site` column for maps)."""
+    """Write `Spectra` as CSV in the format `load_spectra` reads (a `site` column for maps, and
+    `x_mm`, `y_mm` where the sites have positions)."""
     batch = spectra.values.shape[:-2]
     V = spectra.values.reshape((-1,) + spectra.values.shape[-2:])
     S = None if spectra.sigma is None else spectra.sigma.reshape(V.shape)
     labels = spectra.sites or (tuple(str(i) for i in range(V.shape[0])) if batch else (None,))
     cols = ["wavelength_nm", "angle_deg"] + list(spectra.kinds) + ([f"sigma_{k}" for k in spectra.kinds] if S is not None else [])
+    xy = None if spectra.site_xy is None or not batch else np.asarray(spectra.site_xy, np.float64).reshape(-1, 2)
     with open(path, "w", encoding="utf-8", newline="") as f:
         w = csv.writer(f)
-        w.writerow((["site"] if batch else []) + cols)
+        w.writerow((["site"] if batch else []) + (["x_mm", "y_mm"] if xy is not None else []) + cols)
         for b, lab in enumerate(labels):
+            where = [repr(float(c)) for c in xy[b]] if xy is not None else []
             for p in range(V.shape[-1]):
                 row = [repr(float(spectra.wavelength_nm[p])), repr(float(spectra.angle_deg[p]))]
                 row += [repr(float(x)) for x in V[b, :, p]]
                 if S is not None:
                     row += [repr(float(x)) for x in S[b, :, p]]
-                w.writerow(([lab] if batch else []) + row)
+                w.writerow(([lab] if batch else []) + where + row)

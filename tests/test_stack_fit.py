@@ -255,6 +255,27 @@ def test_spectra_round_trip_with_sites(tmp_path):
     np.testing.assert_array_equal(back.values, sp.values)
     np.testing.assert_array_equal(back.sigma, sp.sigma)
     np.testing.assert_array_equal(back.wavelength_nm, sp.wavelength_nm)
+    assert back.site_xy is None
+    # with positions: written as x_mm, y_mm and read back
+    xy = np.array([[-12.5, 3.0], [40.0, -0.1]])
+    jo.save_spectra(tmp_path / "m.csv", sp._replace(site_xy=xy))
+    assert (tmp_path / "m.csv").read_text().startswith("site,x_mm,y_mm,wavelength_nm")
+    back = jo.load_spectra(tmp_path / "m.csv")
+    np.testing.assert_array_equal(back.site_xy, xy)
+    np.testing.assert_array_equal(back.values, sp.values)
+    made = jo.make_spectra(sp.wavelength_nm, sp.angle_deg, dict(zip(sp.kinds, np.moveaxis(sp.values, -2, 0))), sites=["a1", "b2"],
+                           site_xy=xy)
+    assert made.sites == ("a1", "b2")
+    np.testing.assert_array_equal(made.site_xy, xy)
+    V = dict(zip(sp.kinds, np.moveaxis(sp.values, -2, 0)))
+    for kw, msg in [(dict(sites=["a"]), r"sites must be 2 distinct labels \(one per spectrum\), got 1"),
+                    (dict(sites=["a", "a"]), r"got 2 \(1 distinct\)"),
+                    (dict(site_xy=xy[:1]), r"site_xy must be finite positions of shape \(2, 2\), got shape \(1, 2\)"),
+                    (dict(site_xy=[[0, 0], [np.nan, 1]]), r"site_xy must be finite positions")]:
+        with pytest.raises(ValueError, match=msg):
+            jo.make_spectra(sp.wavelength_nm, sp.angle_deg, V, **kw)
+    with pytest.raises(ValueError, match="sites and site_xy describe a map"):
+        jo.make_spectra(sp.wavelength_nm, sp.angle_deg, {k: v[0] for k, v in V.items()}, site_xy=xy[:1])
 
 
 def test_mueller_and_ncs_columns(tmp_path):
@@ -279,6 +300,10 @@ def test_mueller_and_ncs_columns(tmp_path):
     ("# comment\nwavelength_nm,angle_deg,psi_deg\n500,70\n", r"line 3: 2 cells, the header has 3"),
     ("site,wavelength_nm,angle_deg,psi_deg\na,500,70,30\nb,600,70,30\n", r"line 3: site 'b' does not list the same"),
     ("wavelength_nm,wavelength_um,angle_deg,psi_deg\n500,0.5,70,30\n", r"exactly one of the columns wavelength_nm, wavelength_um"),
+    ("site,x_mm,wavelength_nm,angle_deg,psi_deg\na,1,500,70,30\n", r"line 1: give both site position columns x_mm and y_mm"),
+    ("x_mm,y_mm,wavelength_nm,angle_deg,psi_deg\n1,2,500,70,30\n", r"line 1: x_mm and y_mm give the positions of sites: add a site"),
+    ("site,x_mm,y_mm,wavelength_nm,angle_deg,psi_deg\na,1,2,500,70,30\na,1,2.5,600,70,30\n",
+     r"line 3: column 3 \(y_mm\) = 2.5: site 'a' is at y_mm = 2.0 on line 2; a site has one position"),
 ])
 def test_bad_spectra_files_name_line_and_column(tmp_path, text, message):
     p = tmp_path / "bad.csv"
@@ -306,6 +331,49 @@ def test_cli_fit_stack_example(capsys, tmp_path):
     chi = float(out.split("chi2_reduced ")[1].split(";")[0])
     assert 0.8 < chi < 1.2
     assert png.stat().st_size > 20000
+
+
+def test_cli_fit_stack_map(tmp_path, capsys):
+    """A map file (sites with positions, tmm-generated data with noise): the command prints the
+    summary over sites, `--out` writes every site's value and standard error (each within 4 of
+    them of the truth), and `--plot` writes the first site's spectra and the maps."""
+    from jaxoptics.__main__ import main
+
+    wl = np.linspace(350.0, 900.0, 60)
+    ang = np.full(wl.size, 70.0)
+    d_true = np.array([220.0, 260.0, 300.0, 340.0, 380.0, 420.0])
+    xy = np.array([[-40.0, 0.0], [0.0, 0.0], [40.0, 0.0], [-20.0, 30.0], [20.0, 30.0], [0.0, -35.0]])
+    rng = np.random.default_rng(11)
+    psi = np.stack([tmm_quantities(cauchy_n(wl, **OXIDE), d, wl, ang)[0] for d in d_true])
+    delta = np.stack([tmm_quantities(cauchy_n(wl, **OXIDE), d, wl, ang)[1] for d in d_true])
+    sig = dict(psi_deg=0.02, delta_deg=0.05)
+    sp = jo.make_spectra(wl, ang, {"psi_deg": psi + sig["psi_deg"] * rng.normal(size=psi.shape),
+                                   "delta_deg": delta + sig["delta_deg"] * rng.normal(size=psi.shape)},
+                         sigma={k: np.full(psi.shape, v) for k, v in sig.items()}, sites=[f"p{i}" for i in range(6)], site_xy=xy)
+    jo.save_spectra(tmp_path / "map.csv", sp)
+    (tmp_path / "m.toml").write_text(f"""
+[[layer]]
+name = "film"
+thickness_nm = {{ value = 100, min = 0, max = 1000 }}
+material = {{ model = "cauchy", A = {OXIDE['A']}, B = {OXIDE['B']} }}
+[substrate]
+material = "Si"
+""")
+    png = tmp_path / "fit.png"
+    assert main(["fit-stack", str(tmp_path / "map.csv"), "--model", str(tmp_path / "m.toml"), "--out", str(tmp_path / "res.csv"),
+                 "--plot", str(png), "--no-cache"]) == 0
+    out = capsys.readouterr().out
+    assert "60 points (350-900 nm, angles 70 deg) x psi_deg, delta_deg; 6 sites" in out and "converged at 6 of 6 sites" in out
+    mean = float(next(l for l in out.splitlines() if l.startswith("film.thickness_nm")).split()[1])
+    assert abs(mean - d_true.mean()) < 0.1
+    rows = (tmp_path / "res.csv").read_text().splitlines()
+    assert rows[0] == "site,film.thickness_nm,stderr_film.thickness_nm,chi2_reduced,converged"
+    for row, d in zip(rows[1:], d_true, strict=True):
+        site, value, sd, chi2, conv = row.split(",")
+        assert abs(float(value) - d) < 4 * float(sd) and conv == "True" and 0.5 < float(chi2) < 2
+    assert [r.split(",")[0] for r in rows[1:]] == [f"p{i}" for i in range(6)]
+    assert f"plot saved to {png} (site p0)" in out and f"maps of the fitted parameters saved to {tmp_path / 'fit_map.png'}" in out
+    assert png.stat().st_size > 20000 and (tmp_path / "fit_map.png").stat().st_size > 20000
 
 
 def test_plot_draws_the_model_between_the_measurements():
@@ -393,6 +461,62 @@ def test_plot_stack_fit_figure_sites_and_bad_arguments():
             jo.plot_stack_fit(sample, spectra, Fit, **kw)
     with pytest.raises(ValueError, match="residuals='normalized' needs the spectra's sigma"):
         jo.plot_stack_fit(sample, spectra._replace(sigma=None), Fit, residuals="normalized")
+
+
+def test_plot_stack_map_draws_every_site_where_it_is():
+    """`plot_stack_map`: each panel holds the fitted value (its standard error, chi2_reduced) of
+    every site at the site's position (interpolated between sites, or as dots for sites on a
+    line, or against the position in the file without positions), failed sites marked, and clear
+    errors for one spectrum or an unknown parameter."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-50, 50, size=(30, 2))
+    wl, ang = grid()
+
+    class Fit:  # the fields of a StackFit that the map reads
+        names = ("film.thickness_nm", "film.A")
+        values = np.stack([300 + xy[:, 0], 1.46 + 1e-4 * xy[:, 1]], -1)
+        stderr = np.stack([0.1 + 1e-3 * xy[:, 1] ** 2, np.full(30, 1e-5)], -1)
+        chi2_reduced = 1 + 0.01 * np.arange(30)
+        converged = np.arange(30) != 7
+
+    sp = jo.make_spectra(wl, ang, {"psi_deg": np.zeros((30, wl.size))}, sites=[f"s{i}" for i in range(30)], site_xy=xy)
+    fig = jo.plot_stack_map(sp, Fit)
+    panels = [ax for ax in fig.axes if ax.get_title()]
+    assert [ax.get_title() for ax in panels] == ["film.thickness_nm", "stderr of film.thickness_nm", "film.A", "stderr of film.A",
+                                                 "chi2_reduced"]
+    expect = [Fit.values[:, 0], Fit.stderr[:, 0], Fit.values[:, 1], Fit.stderr[:, 1], Fit.chi2_reduced]
+    for ax, z in zip(panels, expect):
+        mesh, = ax.collections
+        np.testing.assert_array_equal(mesh.get_array(), z)  # one value per site, in the sites' order
+        np.testing.assert_array_equal(np.stack([mesh._triangulation.x, mesh._triangulation.y], -1), xy)
+        failed, = ax.get_lines()
+        np.testing.assert_array_equal(np.stack([failed.get_xdata(), failed.get_ydata()], -1), xy[[7]])
+    assert "30 sites; 1 not converged (x)" in fig._suptitle.get_text()
+    plt.close(fig)
+    # sites on one line: dots at the sites
+    line_xy = np.stack([np.linspace(-40, 40, 30), np.zeros(30)], -1)
+    fig = jo.plot_stack_map(sp._replace(site_xy=line_xy), Fit, names=["film.A"])
+    dots, = fig.axes[0].collections
+    np.testing.assert_array_equal(dots.get_offsets(), line_xy)
+    np.testing.assert_array_equal(dots.get_array(), Fit.values[:, 1])
+    assert [ax.get_title() for ax in fig.axes if ax.get_title()] == ["film.A", "stderr of film.A", "chi2_reduced"]
+    plt.close(fig)
+    # no positions: against the site's position in the file
+    fig = jo.plot_stack_map(sp._replace(site_xy=None), Fit)
+    values, failed = fig.axes[0].get_lines()
+    np.testing.assert_array_equal(values.get_xdata(), np.arange(30))
+    np.testing.assert_array_equal(values.get_ydata(), Fit.values[:, 0])
+    np.testing.assert_array_equal(failed.get_xdata(), [7])
+    plt.close(fig)
+    with pytest.raises(ValueError, match="plot_stack_map draws maps: these spectra are one spectrum"):
+        jo.plot_stack_map(jo.make_spectra(wl, ang, {"psi_deg": np.zeros(wl.size)}), Fit)
+    with pytest.raises(ValueError, match=r"\['film.B'\] are not free parameters of this fit; they are film.thickness_nm, film.A"):
+        jo.plot_stack_map(sp, Fit, names=["film.B"])
 
 
 def test_model_file_format_and_errors(tmp_path, capsys):
