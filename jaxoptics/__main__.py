@@ -193,10 +193,13 @@ def _fit_stack(args) -> int:
         if args.out:
             labels = spectra.sites or tuple(str(k) for k in range(nsites))
             with open(args.out, "w", encoding="utf-8") as f:
-                f.write(",".join(["site"] + [x for n in fit.names for x in (n, f"stderr_{n}")] + ["chi2_reduced", "converged"]) + "\n")
+                xy = None if spectra.site_xy is None else np.asarray(spectra.site_xy).reshape(nsites, 2)
+                where = ["x_mm", "y_mm"] if xy is not None else []
+                f.write(",".join(["site"] + where + [x for n in fit.names for x in (n, f"stderr_{n}")] + ["chi2_reduced", "converged"]) + "\n")
                 chi = np.asarray(fit.chi2_reduced).reshape(nsites)
                 for s in range(nsites):
-                    cells = [labels[s]] + [repr(float(x)) for k in range(len(fit.names)) for x in (vals[s, k], sds[s, k])]
+                    cells = [labels[s]] + ([repr(float(c)) for c in xy[s]] if xy is not None else [])
+                    cells += [repr(float(x)) for k in range(len(fit.names)) for x in (vals[s, k], sds[s, k])]
                     f.write(",".join(cells + [repr(float(chi[s])), str(bool(conv[s]))]) + "\n")
             print(f"per-site results written to {args.out}")
     if not bool(np.all(np.asarray(fit.converged))):

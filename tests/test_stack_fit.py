@@ -367,10 +367,11 @@ material = "Si"
     mean = float(next(l for l in out.splitlines() if l.startswith("film.thickness_nm")).split()[1])
     assert abs(mean - d_true.mean()) < 0.1
     rows = (tmp_path / "res.csv").read_text().splitlines()
-    assert rows[0] == "site,film.thickness_nm,stderr_film.thickness_nm,chi2_reduced,converged"
-    for row, d in zip(rows[1:], d_true, strict=True):
-        site, value, sd, chi2, conv = row.split(",")
+    assert rows[0] == "site,x_mm,y_mm,film.thickness_nm,stderr_film.thickness_nm,chi2_reduced,converged"
+    for row, d, at in zip(rows[1:], d_true, xy, strict=True):
+        site, x, y, value, sd, chi2, conv = row.split(",")
         assert abs(float(value) - d) < 4 * float(sd) and conv == "True" and 0.5 < float(chi2) < 2
+        assert (float(x), float(y)) == tuple(at)
     assert [r.split(",")[0] for r in rows[1:]] == [f"p{i}" for i in range(6)]
     assert f"plot saved to {png} (site p0)" in out and f"maps of the fitted parameters saved to {tmp_path / 'fit_map.png'}" in out
     assert png.stat().st_size > 20000 and (tmp_path / "fit_map.png").stat().st_size > 20000
