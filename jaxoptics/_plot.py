@@ -4,6 +4,7 @@ fit-stack --plot` draws them. matplotlib is imported when a figure is drawn."""
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -47,8 +48,12 @@ def _curves(sample, spectra, values, site=0, fine=8):
     kf = np.concatenate([np.full(g[2].size, g[0]) for g in groups])
     wl_all = np.concatenate([wl, kf if over_angle else xf])
     ang_all = np.concatenate([ang, xf if over_angle else kf])
-    model = np.asarray(sample.with_values([float(v) for v in np.asarray(values).reshape(-1)]).quantities(
-        spectra.kinds, jnp.asarray(wl_all), jnp.asarray(np.radians(ang_all))))
+    try:
+        quantities = _quantities(sample, tuple(spectra.kinds))
+    except TypeError:  # a sample that cannot be a cache key
+        quantities = _quantities.__wrapped__(sample, tuple(spectra.kinds))
+    model = np.asarray(quantities(jnp.asarray(np.asarray(values, np.float64).reshape(-1)), jnp.asarray(wl_all),
+                                  jnp.asarray(np.radians(ang_all))))
     at_data, at_fine = model[:, : wl.size], model[:, wl.size:]
     panels = []
     for q, kind in enumerate(spectra.kinds):
@@ -110,6 +115,16 @@ def plot_stack_fit(sample: Sample, spectra: Spectra, fit: StackFit, *, site: int
     fig.suptitle(f"{title or spectra.path or 'layered-sample fit'}{where}\n{params}", fontsize=9)
     fig.tight_layout()
     return fig
+
+
+@functools.lru_cache(maxsize=16)
+def _quantities(sample, kinds):
+    """`(x, wavelength_nm, angle_rad) -> quantities` of `sample` with free parameters `x`, compiled
+    as one program (evaluated op by op, JAX would compile each of the model's operations for new
+    shapes: several seconds on a first figure) and kept for the next figure of the same sample."""
+    import jax
+
+    return jax.jit(lambda x, w, a: sample.with_values(list(x)).quantities(kinds, w, a))
 
 
 def _site_index(spectra, site):
