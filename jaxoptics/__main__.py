@@ -212,7 +212,7 @@ def _fit_stack(args) -> int:
 
         from ._plot import plot_stack_fit
 
-        fig = plot_stack_fit(sample, spectra, fit, title=str(data_path))
+        fig = plot_stack_fit(sample, spectra, fit, title=f"fit-stack: {data_path.name}")
         fig.savefig(args.plot, dpi=120)
         plt.close(fig)
         print(f"plot saved to {args.plot}" + (f" (site {spectra.sites[0] if spectra.sites else 0})" if spectra.batch_shape else ""))

@@ -112,7 +112,7 @@ def plot_stack_fit(sample: Sample, spectra: Spectra, fit: StackFit, *, site: int
     params = ", ".join(f"{n} = {v:.5g}" for n, v in zip(fit.names, x))
     n_sites = np.asarray(fit.values).size // len(fit.names)
     where = f" (site {spectra.sites[k] if spectra.sites else k} of {n_sites})" if spectra.batch_shape else ""
-    fig.suptitle(f"{title or spectra.path or 'layered-sample fit'}{where}\n{params}", fontsize=9)
+    fig.suptitle(f"{title or _name(spectra) or 'layered-sample fit'}{where}\n{params}", fontsize=9)
     fig.tight_layout()
     return fig
 
@@ -125,6 +125,13 @@ def _quantities(sample, kinds):
     import jax
 
     return jax.jit(lambda x, w, a: sample.with_values(list(x)).quantities(kinds, w, a))
+
+
+def _name(spectra):
+    """The name of the file the spectra were read from, or None."""
+    import os
+
+    return os.path.basename(spectra.path) if spectra.path else None
 
 
 def _site_index(spectra, site):
@@ -199,6 +206,6 @@ def plot_stack_map(spectra: Spectra, fit: StackFit, *, names: tuple | list | Non
     for ax in axes.flat[len(panels):]:
         ax.set_visible(False)
     note = f"; {int(failed.sum())} not converged (x)" if failed.any() else ""
-    fig.suptitle(f"{spectra.path or 'map fit'}: {n} sites{note}", fontsize=9)
+    fig.suptitle(f"{_name(spectra) or 'map fit'}: {n} sites{note}", fontsize=9)
     fig.tight_layout()
     return fig
