@@ -79,12 +79,13 @@ def plot_stack_fit(sample: Sample, spectra: Spectra, fit: StackFit, *, site: int
                    fine: int = 8, title: str | None = None) -> Figure:
     """A matplotlib figure of the fit `fit` (a `StackFit` of `sample` to `spectra`) at one site:
     for each measured quantity, the data (dots) and the model (lines, drawn between the measured
-    points too, with delta's line broken where it wraps) above, the residuals below; the fitted values in the title.
+    points too, with delta's line broken where it wraps) above, the residuals below; the fitted
+    values in the title.
 
     - `site`: the map point, by position or by label (`spectra.sites`); ignored for one spectrum.
     - `residuals`: `"difference"` (model - data, in the quantity's unit) or `"normalized"`
       (model - data over sigma; needs `spectra.sigma`).
-    - `fine`: the model's points per gap between measured points.
+    - `fine`: the model's points per gap between measured points (at least 1).
 
     Returns the `Figure` (made with `pyplot`, so a notebook shows it); save it with `savefig`."""
     import matplotlib.pyplot as plt
@@ -93,6 +94,9 @@ def plot_stack_fit(sample: Sample, spectra: Spectra, fit: StackFit, *, site: int
         raise ValueError(f"residuals must be 'difference' or 'normalized', got {residuals!r}")
     if residuals == "normalized" and spectra.sigma is None:
         raise ValueError("residuals='normalized' needs the spectra's sigma; these spectra have none")
+    if not isinstance(fine, (int, np.integer)) or isinstance(fine, bool) or fine < 1:
+        raise ValueError(f"fine must be a whole number of points per gap, at least 1, got {fine!r}")
+    _check_fit(spectra, fit)
     k = _site_index(spectra, site)
     x = np.asarray(fit.values).reshape(-1, len(fit.names))[k]
     xlabel, panels = _curves(sample, spectra, x, k, fine)
@@ -134,6 +138,14 @@ def _name(spectra):
     return os.path.basename(spectra.path) if spectra.path else None
 
 
+def _check_fit(spectra, fit):
+    """That `fit` holds one fit per spectrum of `spectra`."""
+    n = int(np.prod(spectra.batch_shape)) if spectra.batch_shape else 1
+    m = np.asarray(fit.values).size // max(len(fit.names), 1)
+    if m != n:
+        raise ValueError(f"the fit holds {m} fits, the spectra {n} spectra: plot a fit with the spectra it was fitted to")
+
+
 def _site_index(spectra, site):
     """The position of `site` (a position or a label of `spectra.sites`) among the spectra's sites."""
     n = int(np.prod(spectra.batch_shape)) if spectra.batch_shape else 1
@@ -166,6 +178,7 @@ def plot_stack_map(spectra: Spectra, fit: StackFit, *, names: tuple | list | Non
     unknown = [n for n in names if n not in fit.names]
     if unknown:
         raise ValueError(f"{unknown} are not free parameters of this fit; they are {', '.join(fit.names)}")
+    _check_fit(spectra, fit)
     n = int(np.prod(spectra.batch_shape))
     vals = np.asarray(fit.values, np.float64).reshape(n, -1)
     sds = np.asarray(fit.stderr, np.float64).reshape(n, -1)

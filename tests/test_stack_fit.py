@@ -457,9 +457,12 @@ def test_plot_stack_fit_figure_sites_and_bad_arguments():
     plt.close(fig)
     for kw, msg in [(dict(site=2), r"site must be a position in 0..1 or a site label, got 2"),
                     (dict(site="z"), r"site 'z' is not a site of these spectra \(sites: a, b\)"),
-                    (dict(residuals="relative"), r"residuals must be 'difference' or 'normalized', got 'relative'")]:
+                    (dict(residuals="relative"), r"residuals must be 'difference' or 'normalized', got 'relative'"),
+                    (dict(fine=0), r"fine must be a whole number of points per gap, at least 1, got 0")]:
         with pytest.raises(ValueError, match=msg):
             jo.plot_stack_fit(sample, spectra, Fit, **kw)
+    with pytest.raises(ValueError, match="the fit holds 2 fits, the spectra 1 spectra"):
+        jo.plot_stack_fit(sample, jo.make_spectra(wl, ang, {"psi_deg": clean}), Fit)
     with pytest.raises(ValueError, match="residuals='normalized' needs the spectra's sigma"):
         jo.plot_stack_fit(sample, spectra._replace(sigma=None), Fit, residuals="normalized")
 
@@ -518,6 +521,8 @@ def test_plot_stack_map_draws_every_site_where_it_is():
         jo.plot_stack_map(jo.make_spectra(wl, ang, {"psi_deg": np.zeros(wl.size)}), Fit)
     with pytest.raises(ValueError, match=r"\['film.B'\] are not free parameters of this fit; they are film.thickness_nm, film.A"):
         jo.plot_stack_map(sp, Fit, names=["film.B"])
+    with pytest.raises(ValueError, match="the fit holds 30 fits, the spectra 2 spectra"):
+        jo.plot_stack_map(jo.make_spectra(wl, ang, {"psi_deg": np.zeros((2, wl.size))}), Fit)
 
 
 def test_model_file_format_and_errors(tmp_path, capsys):
