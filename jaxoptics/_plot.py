@@ -100,14 +100,16 @@ def plot_stack_fit(sample: Sample, spectra: Spectra, fit: StackFit, *, site: int
     k = _site_index(spectra, site)
     x = np.asarray(fit.values).reshape(-1, len(fit.names))[k]
     xlabel, panels = _curves(sample, spectra, x, k, fine)
-    S = None if spectra.sigma is None else np.asarray(spectra.sigma).reshape((-1,) + spectra.values.shape[-2:])[k]
+    # the residuals' scale: sigma, or 1 for differences
+    S = np.ones(spectra.values.shape[-2:]) if residuals == "difference" else np.asarray(spectra.sigma).reshape(
+        (-1,) + spectra.values.shape[-2:])[k]
     Q = len(panels)
     fig, axes = plt.subplots(2, Q, figsize=(5 * Q, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]}, squeeze=False)
     for q, (kind, curves) in enumerate(panels):
         for label, xf, yf, xd, shown, resid, m in curves:
             line, = axes[0, q].plot(xf, yf, lw=1.2, label=label)
             axes[0, q].plot(xd, shown, ".", ms=2.5, color=line.get_color())
-            axes[1, q].plot(xd, resid / S[q][m] if residuals == "normalized" else resid, ".", ms=2.5, color=line.get_color())
+            axes[1, q].plot(xd, resid / S[q][m], ".", ms=2.5, color=line.get_color())
         axes[0, q].set_ylabel(kind)
         axes[1, q].set_ylabel("(model - data) / sigma" if residuals == "normalized" else "model - data")
         axes[1, q].set_xlabel(xlabel)
