@@ -249,10 +249,10 @@ def _plot_fits(fits, args, title):
         lbl = f"{c.polarization}{lam}: eta = {eta:.5g}"
         ax.errorbar(deg, c.R, yerr=c.sigma, fmt="o", ms=3.5, color=color, label=f"data ({c.polarization}{lam})")
         ax.plot(np.rad2deg(fine), model, "-", color=color, lw=1.2, label=f"fit {lbl}")
-        axr.errorbar(deg, c.R - fit_at, yerr=c.sigma, fmt="o", ms=3, color=color)
+        axr.errorbar(deg, fit_at - c.R, yerr=c.sigma, fmt="o", ms=3, color=color)
     axr.axhline(0, color="k", lw=0.8)
     ax.set_ylabel("reflectance R")
-    axr.set_ylabel("data - fit")
+    axr.set_ylabel("model - data")
     axr.set_xlabel("angle of incidence (degrees)")
     ax.set_title(f"index fit: {Path(title).name}")
     ax.legend(fontsize=8)

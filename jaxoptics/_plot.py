@@ -46,31 +46,28 @@ def _curves(sample, spectra, values, site=0, fine=8):
         groups.append((key, m, np.unique(np.concatenate([u, between]))))
     xf = np.concatenate([g[2] for g in groups])
     kf = np.concatenate([np.full(g[2].size, g[0]) for g in groups])
-    wl_all = np.concatenate([wl, kf if over_angle else xf])
-    ang_all = np.concatenate([ang, xf if over_angle else kf])
     try:
         quantities = _quantities(sample, tuple(spectra.kinds))
     except TypeError:  # a sample that cannot be a cache key
         quantities = _quantities.__wrapped__(sample, tuple(spectra.kinds))
-    model = np.asarray(quantities(jnp.asarray(np.asarray(values, np.float64).reshape(-1)), jnp.asarray(wl_all),
-                                  jnp.asarray(np.radians(ang_all))))
-    at_data, at_fine = model[:, : wl.size], model[:, wl.size:]
+    wl_f, ang_f = (kf, xf) if over_angle else (xf, kf)
+    model = np.asarray(quantities(jnp.asarray(np.asarray(values, np.float64).reshape(-1)), jnp.asarray(wl_f),
+                                  jnp.asarray(np.radians(ang_f))))
     panels = []
     for q, kind in enumerate(spectra.kinds):
-        resid, curve, fine_q = at_data[q] - V[q], at_data[q], at_fine[q]
-        if kind == "delta_deg":
-            resid = (resid + 180) % 360 - 180
-            curve, fine_q = curve % 360, fine_q % 360
-        shown = curve - resid
         curves, start = [], 0
         for key, m, xg in groups:
-            yg = fine_q[start:start + xg.size]
+            yg = model[q, start:start + xg.size]
             start += xg.size
+            at = yg[np.searchsorted(xg, xs[m])]  # every measured x is a point of the group's grid
+            resid = at - V[q][m]
             if kind == "delta_deg":
+                resid = (resid + 180) % 360 - 180
+                at, yg = at % 360, yg % 360
                 cut = np.flatnonzero(np.abs(np.diff(yg)) > 180) + 1
                 xg, yg = np.insert(xg, cut, np.nan), np.insert(yg, cut, np.nan)
             label = f"fit, {key:g} nm" if over_angle else f"fit, {key:g} deg"
-            curves.append((label, xg, yg, xs[m], shown[m], resid[m], m))
+            curves.append((label, xg, yg, xs[m], at - resid, resid, m))
         panels.append((kind, curves))
     return ("angle of incidence (deg)" if over_angle else "wavelength (nm)"), panels
 
@@ -142,7 +139,7 @@ def _name(spectra):
 
 def _check_fit(spectra, fit):
     """That `fit` holds one fit per spectrum of `spectra`."""
-    n = int(np.prod(spectra.batch_shape)) if spectra.batch_shape else 1
+    n = int(np.prod(spectra.batch_shape))
     m = np.asarray(fit.values).size // max(len(fit.names), 1)
     if m != n:
         raise ValueError(f"the fit holds {m} fits, the spectra {n} spectra: plot a fit with the spectra it was fitted to")
@@ -150,7 +147,7 @@ def _check_fit(spectra, fit):
 
 def _site_index(spectra, site):
     """The position of `site` (a position or a label of `spectra.sites`) among the spectra's sites."""
-    n = int(np.prod(spectra.batch_shape)) if spectra.batch_shape else 1
+    n = int(np.prod(spectra.batch_shape))
     if isinstance(site, str):
         if not spectra.sites or site not in spectra.sites:
             some = "" if not spectra.sites else f" (sites: {', '.join(spectra.sites[:5])}{', ...' if len(spectra.sites) > 5 else ''})"

@@ -475,6 +475,22 @@ def test_cli_fit_example(capsys, tmp_path):
     line = [l for l in out.splitlines() if l.startswith("combined")][0]
     est, se = float(line.split("eta = ")[1].split()[0]), float(line.split("+- ")[1].split()[0])
     assert abs(est - float(jo.material_index("N-BK7", 0.5876))) < 4 * se
+    # the lower panel shows model - data: the drawn model at each measured angle minus the measurement
+    import matplotlib.pyplot as plt
+
+    ax, axr = plt.gcf().axes[:2]
+    assert axr.get_ylabel() == "model - data"
+    fits = [l for l in ax.get_lines() if l.get_label().startswith("fit ")]
+    assert fits
+    for k, fit_line in enumerate(fits):
+        data = ax.containers[k].lines[0]  # the errorbar's points
+        resid = axr.containers[k].lines[0]
+        xd, yd = data.get_data()
+        np.testing.assert_array_equal(resid.get_xdata(), xd)
+        drawn = np.interp(xd, *fit_line.get_data())
+        np.testing.assert_allclose(resid.get_ydata(), drawn - yd, rtol=0, atol=1e-4)  # 400-point line: 3e-5
+        assert np.max(np.abs(resid.get_ydata())) > 1e-3  # residuals far above the tolerance: the sign is tested
+    plt.close("all")
 
 
 def test_cli_fit_file_and_errors(capsys, tmp_path):
