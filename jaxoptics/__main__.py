@@ -233,32 +233,15 @@ def _plot_fits(fits, args, title):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
 
-    import jaxoptics as jo
+    from ._plot import _draw_index_fit, _finish_index_figure
 
     fig, (ax, axr) = plt.subplots(2, 1, figsize=(7.5, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1.3]})
     for k, (c, r) in enumerate(fits):
-        color = f"C{k}"
-        deg = np.rad2deg(c.theta)
-        fine = np.linspace(0, np.pi / 2, 400)
-        model = np.asarray(jo.synthetic_reflectance(None, r.eta, fine, eta1=args.eta1, polarization=c.polarization))
-        fit_at = np.asarray(jo.synthetic_reflectance(None, r.eta, c.theta, eta1=args.eta1, polarization=c.polarization))
         lam = "" if c.wavelength_um is None else f", {c.wavelength_um:g} um"
-        eta = complex(r.eta) if args.absorbing else float(r.eta)
-        lbl = f"{c.polarization}{lam}: eta = {eta:.5g}"
-        ax.errorbar(deg, c.R, yerr=c.sigma, fmt="o", ms=3.5, color=color, label=f"data ({c.polarization}{lam})")
-        ax.plot(np.rad2deg(fine), model, "-", color=color, lw=1.2, label=f"fit {lbl}")
-        axr.errorbar(deg, fit_at - c.R, yerr=c.sigma, fmt="o", ms=3, color=color)
-    axr.axhline(0, color="k", lw=0.8)
-    ax.set_ylabel("reflectance R")
-    axr.set_ylabel("model - data")
-    axr.set_xlabel("angle of incidence (degrees)")
-    ax.set_title(f"index fit: {Path(title).name}")
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
-    axr.grid(alpha=0.3)
-    fig.tight_layout()
+        _draw_index_fit(ax, axr, c.theta, c.R, c.sigma, c.polarization, r.eta, r.stderr, r.eta_alt, args.eta1,
+                        f"C{k % 10}", f"({c.polarization}{lam})")
+    _finish_index_figure(ax, axr, f"index fit: {Path(title).name}")
     fig.savefig(args.plot, dpi=120)
 
 

@@ -1,6 +1,7 @@
-"""Figures of layered-sample fits: the measured quantities with the fitted model and the residuals
-(`plot_stack_fit`), and the fitted parameters over a map (`plot_stack_map`); `python -m jaxoptics
-fit-stack --plot` draws them. matplotlib is imported when a figure is drawn."""
+"""Figures of fits: reflectance curves with the fitted index (`plot_fit`), layered-sample spectra
+with the fitted model and the residuals (`plot_stack_fit`), and the fitted parameters over a map
+(`plot_stack_map`); `python -m jaxoptics fit --plot` and `fit-stack --plot` draw them. matplotlib
+is imported when a figure is drawn."""
 
 from __future__ import annotations
 
@@ -10,11 +11,116 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from jaxtyping import ArrayLike, Float
     from matplotlib.figure import Figure
 
+    from ._fit_result import FitResult
     from ._sample import Sample
     from ._spectra import Spectra
     from ._stack_fit import StackFit
+
+
+# the most curves `plot_fit` draws unless told which
+MAX_CURVES = 10
+
+
+def plot_fit(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], fit: FitResult, *, eta1: float = 1.0,
+             polarization: str | Sequence[str] = "unpolarized", sigma: Float[ArrayLike, "*#batch #m"] | None = None,
+             which: int | Sequence[int] | None = None, title: str | None = None) -> Figure:
+    """A matplotlib figure of index fits (`fit`, the `FitResult` of `fit_eta` on these data): the
+    measured reflectance against angle (dots, with `sigma` as error bars) and the reflectance of the
+    fitted index over all angles (lines) above, the residuals `R_model - R` (the sign of
+    `FitResult.residual_rms`) below. Where the data cannot tell the index from the other branch
+    (`fit.eta_alt` finite), that branch's curve is drawn dashed.
+
+    - `theta`, `R`, `eta1`, `polarization`, `sigma`: as given to `fit_eta` (`R` one curve `(m,)` or
+      a batch `(..., m)` with the batch shape of `fit`).
+    - `which`: positions of the curves to draw in the flattened batch; default all of them, or the
+      first `MAX_CURVES` (10) of a larger batch, which the title then says.
+
+    Returns the `Figure` (made with `pyplot`, so a notebook shows it); save it with `savefig`."""
+    import matplotlib.pyplot as plt
+
+    from ._fit import _check_polarization
+
+    theta = np.asarray(theta, np.float64)
+    R = np.asarray(R, np.float64)
+    if theta.ndim != 1 or R.ndim < 1 or R.shape[-1] != theta.size:
+        raise ValueError(f"theta must be (m,) and R (..., m) with the same m; got theta {theta.shape}, R {R.shape}")
+    batch = R.shape[:-1]
+    eta = np.asarray(fit.eta)
+    if eta.shape != batch:
+        raise ValueError(f"the fit has batch shape {eta.shape}, R {batch}: plot a fit with the curves it was fitted to")
+    n = int(np.prod(batch))
+    pol = np.broadcast_to(np.asarray(_check_polarization(polarization, batch), dtype=object), batch).reshape(n)
+    S = None if sigma is None else np.asarray(sigma, np.float64)
+    if S is not None:
+        try:
+            S = np.broadcast_to(S, R.shape).reshape(n, -1)
+        except ValueError:
+            raise ValueError(f"sigma has shape {S.shape}, which does not broadcast to R's {R.shape}") from None
+    if which is None:
+        picked = list(range(min(n, MAX_CURVES)))
+    else:
+        picked = np.atleast_1d(np.asarray(which, dtype=object)).tolist()
+        if not picked or any(not isinstance(k, (int, np.integer)) or isinstance(k, bool) or not 0 <= k < n for k in picked):
+            raise ValueError(f"which must be positions of curves in 0..{n - 1}, got {which!r}")
+    fig, (ax, axr) = plt.subplots(2, 1, figsize=(7.5, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1.3]})
+    Rf = R.reshape(n, -1)
+    fields = {f: np.asarray(getattr(fit, f)).reshape(n) for f in ("eta", "stderr", "eta_alt")}
+    for c, k in enumerate(picked):
+        at = f" [{k}]" if n > 1 else ""
+        _draw_index_fit(ax, axr, theta, Rf[k], None if S is None else S[k], str(pol[k]), fields["eta"][k],
+                        fields["stderr"][k], fields["eta_alt"][k], eta1, f"C{c % 10}", f"{pol[k]}{at}")
+    shown = "" if which is not None or n <= MAX_CURVES else f" (curves 0-{MAX_CURVES - 1} of {n})"
+    _finish_index_figure(ax, axr, f"{title or 'index fit'}{shown}")
+    return fig
+
+
+def _draw_index_fit(ax, axr, theta, R, sigma, polarization, eta, stderr, eta_alt, eta1, color, name):
+    """One curve of an index-fit figure: data and the fitted index's reflectance on `ax`, model -
+    data on `axr`; the other branch dashed where `eta_alt` is finite."""
+    fine = np.linspace(0.0, np.pi / 2, 400)
+    model = _index_reflectance(float(eta1), polarization)
+    deg = np.rad2deg(theta)
+    absorbing = np.iscomplexobj(eta)
+    if absorbing:
+        e, se = complex(eta), complex(stderr)
+        value = f"{e.real:.6g}{e.imag:+.6g}i (+- {se.real:.2g}, {se.imag:.2g}i)"
+    else:
+        value = f"{float(eta):.7g} +- {float(stderr):.2g}"
+    ax.errorbar(deg, R, yerr=sigma, fmt="o", ms=3.5, color=color, label=f"data {name}")
+    ax.plot(np.rad2deg(fine), model(eta, fine), "-", color=color, lw=1.2, label=f"fit {name}: eta = {value}")
+    if not absorbing and np.isfinite(eta_alt):
+        ax.plot(np.rad2deg(fine), model(eta_alt, fine), "--", color=color, lw=1,
+                label=f"other branch: eta = {float(eta_alt):.7g} (fits almost as well)")
+    axr.errorbar(deg, model(eta, theta) - R, yerr=sigma, fmt="o", ms=3, color=color)
+
+
+def _finish_index_figure(ax, axr, title):
+    axr.axhline(0, color="k", lw=0.8)
+    ax.set_ylabel("reflectance R")
+    axr.set_ylabel("model - data")
+    axr.set_xlabel("angle of incidence (degrees)")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    axr.grid(alpha=0.3)
+    ax.figure.tight_layout()
+
+
+@functools.lru_cache(maxsize=16)
+def _index_reflectance(eta1, polarization):
+    """`(eta, theta) -> R` for one index, compiled once per incident index and polarization (and
+    per dtype of `eta`), as numbers."""
+    import jax
+
+    from ._fit_model import synthetic_reflectance
+
+    f = jax.jit(lambda eta, theta: synthetic_reflectance(None, eta, theta, eta1=eta1, polarization=polarization))
+    return lambda eta, theta: np.asarray(f(eta, np.asarray(theta, np.float64)))
 
 
 def _curves(sample, spectra, values, site=0, fine=8):

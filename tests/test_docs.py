@@ -72,3 +72,4 @@ def test_readme_python_examples_run(tmp_path):
     res = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     assert (tmp_path / "fit.png").stat().st_size > 20000
+    assert (tmp_path / "index_fit.png").stat().st_size > 20000

@@ -666,3 +666,65 @@ def test_complex_fit_model_and_jacobian_match_mpmath(pol):
                     x0 = [mpf(eta.real), mpf(eta.imag)]
                     w = float(mp.diff(lambda s: R_ref(mpf(c), mpf(a), *[s if q == j else x0[q] for q in range(2)]), x0[j]))
                     assert abs(d - w) <= 1e-9 * abs(w) + 1e-14, (pol, a, eta, c, j, d, w)
+
+
+def test_plot_fit_draws_the_fitted_index_and_its_residuals():
+    """`plot_fit` draws, for each curve, the measured points, tmm's reflectance of the fitted index
+    over all angles (and of the other branch, dashed, where the data allow it), and model - data."""
+    import matplotlib.pyplot as plt
+
+    rng = np.random.default_rng(3)
+    etas, pols = np.array([1.52, 2.1 + 0.4j]), ("s", "p")
+    R = np.stack([tmm_curve(1.0, e, THETA, p) for p, e in zip(pols, etas)]) + 1e-3 * rng.standard_normal((2, THETA.size))
+    fit = jo.fit_eta(THETA, R, polarization=pols, sigma=1e-3, absorbing=True)
+    fig = jo.plot_fit(THETA, R, fit, polarization=pols, sigma=1e-3, title="two curves")
+    ax, axr = fig.axes
+    assert ax.get_title() == "two curves" and axr.get_ylabel() == "model - data"
+    fits = [l for l in ax.get_lines() if l.get_label().startswith("fit ")]
+    assert len(fits) == 2 and "[1]" in fits[1].get_label()
+    for k, (line, p) in enumerate(zip(fits, pols)):
+        x, y = line.get_data()
+        np.testing.assert_allclose(y, tmm_curve(1.0, complex(fit.eta[k]), np.deg2rad(x), p), rtol=0, atol=1e-12)
+        xd, yd = ax.containers[k].lines[0].get_data()
+        np.testing.assert_array_equal(yd, R[k])
+        xr, yr = axr.containers[k].lines[0].get_data()
+        np.testing.assert_array_equal(xr, xd)
+        np.testing.assert_allclose(yr, tmm_curve(1.0, complex(fit.eta[k]), THETA, p) - R[k], rtol=0, atol=1e-12)
+    plt.close(fig)
+
+    # internal reflection near normal incidence: 1.2 and its other branch both fit; both are drawn
+    th = np.deg2rad(np.linspace(0, 5, 20))
+    R1 = tmm_curve(1.5, 1.2, th, "unpolarized") + 1e-3 * rng.standard_normal(th.size)
+    one = jo.fit_eta(th, R1, eta1=1.5)
+    assert np.isfinite(float(one.eta_alt))
+    fig = jo.plot_fit(th, R1, one, eta1=1.5)
+    branch = [l for l in fig.axes[0].get_lines() if l.get_label().startswith("other branch")]
+    assert len(branch) == 1 and branch[0].get_linestyle() == "--"
+    x, y = branch[0].get_data()
+    np.testing.assert_allclose(y, tmm_curve(1.5, float(one.eta_alt), np.deg2rad(x), "unpolarized"), rtol=0, atol=1e-12)
+    plt.close(fig)
+
+
+def test_plot_fit_chooses_curves_and_refuses_bad_arguments():
+    import matplotlib.pyplot as plt
+
+    R = np.asarray(jo.synthetic_reflectance(jax.random.PRNGKey(4), jnp.linspace(1.3, 2.0, 12), THETA, noise=1e-3))
+    fit = jo.fit_eta(THETA, R)
+    fig = jo.plot_fit(THETA, R, fit)  # more curves than it draws by default: the first ten, and it says so
+    assert len(fig.axes[0].containers) == jo._plot.MAX_CURVES and "(curves 0-9 of 12)" in fig.axes[0].get_title()
+    plt.close(fig)
+    fig = jo.plot_fit(THETA, R, fit, which=[11, 3])
+    xd, yd = fig.axes[0].containers[0].lines[0].get_data()
+    np.testing.assert_array_equal(yd, R[11])
+    assert len(fig.axes[0].containers) == 2 and "of 12" not in fig.axes[0].get_title()
+    plt.close(fig)
+    for bad, message in [(dict(which=[12]), "which must be"), (dict(which=[]), "which must be"),
+                         (dict(which=[True]), "which must be"), (dict(which=[1.0]), "which must be"),
+                         (dict(polarization="q"), "polarization must be"), (dict(sigma=np.ones(3)), "sigma has shape")]:
+        with pytest.raises(ValueError, match=message):
+            jo.plot_fit(THETA, R, fit, **bad)
+    with pytest.raises(ValueError, match="batch shape"):
+        jo.plot_fit(THETA, R[:3], fit)
+    with pytest.raises(ValueError, match="same m"):
+        jo.plot_fit(THETA[:-1], R, fit)
+    plt.close("all")
