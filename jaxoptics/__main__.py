@@ -239,8 +239,8 @@ def _plot_fits(fits, args, title):
     fig, (ax, axr) = plt.subplots(2, 1, figsize=(7.5, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1.3]})
     for k, (c, r) in enumerate(fits):
         lam = "" if c.wavelength_um is None else f", {c.wavelength_um:g} um"
-        _draw_index_fit(ax, axr, c.theta, c.R, c.sigma, c.polarization, r.eta, r.stderr, r.eta_alt, args.eta1,
-                        f"C{k % 10}", f"({c.polarization}{lam})")
+        _draw_index_fit(ax, axr, c.theta, c.R, c.sigma, c.polarization, r.eta, r.stderr, r.eta_alt, bool(r.converged),
+                        args.eta1, f"C{k % 10}", f"({c.polarization}{lam})")
     _finish_index_figure(ax, axr, f"index fit: {Path(title).name}")
     fig.savefig(args.plot, dpi=120)
 

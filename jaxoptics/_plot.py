@@ -33,7 +33,8 @@ def plot_fit(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], fit
     measured reflectance against angle (dots, with `sigma` as error bars) and the reflectance of the
     fitted index over all angles (lines) above, the residuals `R_model - R` (the sign of
     `FitResult.residual_rms`) below. Where the data cannot tell the index from the other branch
-    (`fit.eta_alt` finite), that branch's curve is drawn dashed.
+    (`fit.eta_alt` finite), that branch's curve is drawn dashed; a fit that did not converge says
+    so in its label.
 
     - `theta`, `R`, `eta1`, `polarization`, `sigma`: as given to `fit_eta` (`R` one curve `(m,)` or
       a batch `(..., m)` with the batch shape of `fit`).
@@ -69,17 +70,18 @@ def plot_fit(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], fit
             raise ValueError(f"which must be positions of curves in 0..{n - 1}, got {which!r}")
     fig, (ax, axr) = plt.subplots(2, 1, figsize=(7.5, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1.3]})
     Rf = R.reshape(n, -1)
-    fields = {f: np.asarray(getattr(fit, f)).reshape(n) for f in ("eta", "stderr", "eta_alt")}
+    fields = {f: np.asarray(getattr(fit, f)).reshape(n) for f in ("eta", "stderr", "eta_alt", "converged")}
     for c, k in enumerate(picked):
         at = f" [{k}]" if n > 1 else ""
         _draw_index_fit(ax, axr, theta, Rf[k], None if S is None else S[k], str(pol[k]), fields["eta"][k],
-                        fields["stderr"][k], fields["eta_alt"][k], eta1, f"C{c % 10}", f"{pol[k]}{at}")
+                        fields["stderr"][k], fields["eta_alt"][k], bool(fields["converged"][k]), eta1, f"C{c % 10}",
+                        f"{pol[k]}{at}")
     shown = "" if which is not None or n <= MAX_CURVES else f" (curves 0-{MAX_CURVES - 1} of {n})"
     _finish_index_figure(ax, axr, f"{title or 'index fit'}{shown}")
     return fig
 
 
-def _draw_index_fit(ax, axr, theta, R, sigma, polarization, eta, stderr, eta_alt, eta1, color, name):
+def _draw_index_fit(ax, axr, theta, R, sigma, polarization, eta, stderr, eta_alt, converged, eta1, color, name):
     """One curve of an index-fit figure: data and the fitted index's reflectance on `ax`, model -
     data on `axr`; the other branch dashed where `eta_alt` is finite."""
     fine = np.linspace(0.0, np.pi / 2, 400)
@@ -91,6 +93,8 @@ def _draw_index_fit(ax, axr, theta, R, sigma, polarization, eta, stderr, eta_alt
         value = f"{e.real:.6g}{e.imag:+.6g}i (+- {se.real:.2g}, {se.imag:.2g}i)"
     else:
         value = f"{float(eta):.7g} +- {float(stderr):.2g}"
+    if not converged:
+        value += " (NOT converged)"
     ax.errorbar(deg, R, yerr=sigma, fmt="o", ms=3.5, color=color, label=f"data {name}")
     ax.plot(np.rad2deg(fine), model(eta, fine), "-", color=color, lw=1.2, label=f"fit {name}: eta = {value}")
     if not absorbing and np.isfinite(eta_alt):
@@ -183,7 +187,7 @@ def plot_stack_fit(sample: Sample, spectra: Spectra, fit: StackFit, *, site: int
     """A matplotlib figure of the fit `fit` (a `StackFit` of `sample` to `spectra`) at one site:
     for each measured quantity, the data (dots) and the model (lines, drawn between the measured
     points too, with delta's line broken where it wraps) above, the residuals below; the fitted
-    values in the title.
+    values in the title (which says so if the fit did not converge).
 
     - `site`: the map point, by position or by label (`spectra.sites`); ignored for one spectrum.
     - `residuals`: `"difference"` (model - data, in the quantity's unit) or `"normalized"`
@@ -221,7 +225,8 @@ def plot_stack_fit(sample: Sample, spectra: Spectra, fit: StackFit, *, site: int
     params = ", ".join(f"{n} = {v:.5g}" for n, v in zip(fit.names, x))
     n_sites = np.asarray(fit.values).size // len(fit.names)
     where = f" (site {spectra.sites[k] if spectra.sites else k} of {n_sites})" if spectra.batch_shape else ""
-    fig.suptitle(f"{title or _name(spectra) or 'layered-sample fit'}{where}\n{params}", fontsize=9)
+    failed = "" if np.asarray(fit.converged).reshape(-1)[k] else " - the fit did NOT converge"
+    fig.suptitle(f"{title or _name(spectra) or 'layered-sample fit'}{where}{failed}\n{params}", fontsize=9)
     fig.tight_layout()
     return fig
 

@@ -718,6 +718,12 @@ def test_plot_fit_chooses_curves_and_refuses_bad_arguments():
     np.testing.assert_array_equal(yd, R[11])
     assert len(fig.axes[0].containers) == 2 and "of 12" not in fig.axes[0].get_title()
     plt.close(fig)
+    # a fit that did not converge says so in its label, the others do not
+    failed = dataclasses.replace(fit, converged=np.arange(12) != 3)
+    fig = jo.plot_fit(THETA, R, failed, which=[3, 4])
+    labels = [l.get_label() for l in fig.axes[0].get_lines() if l.get_label().startswith("fit ")]
+    assert labels[0].endswith("(NOT converged)") and "converged" not in labels[1]
+    plt.close(fig)
     for bad, message in [(dict(which=[12]), "which must be"), (dict(which=[]), "which must be"),
                          (dict(which=[True]), "which must be"), (dict(which=[1.0]), "which must be"),
                          (dict(polarization="q"), "polarization must be"), (dict(sigma=np.ones(3)), "sigma has shape")]:

@@ -440,19 +440,21 @@ def test_plot_stack_fit_figure_sites_and_bad_arguments():
     V = np.stack([clean, clean + 0.02])  # site "b": the model 0.02 degrees below the data
     spectra = jo.Spectra(wl, ang, ("psi_deg",), V[:, None], np.full((2, 1, wl.size), 0.01), ("a", "b"))
 
-    class Fit:  # the fields of a StackFit that the plot reads: both sites at the truth
+    class Fit:  # the fields of a StackFit that the plot reads: both sites at the truth, site b not converged
         names = ("film.thickness_nm",)
         values = np.array([[480.0], [480.0]])
+        converged = np.array([True, False])
 
     for site in (1, "b", -1):
         fig = jo.plot_stack_fit(sample, spectra, Fit, site=site, residuals="normalized")
         ax = fig.axes[1]
-        assert ax.get_ylabel() == "(model - data) / sigma" and "(site b of 2)" in fig._suptitle.get_text()
+        assert ax.get_ylabel() == "(model - data) / sigma" and "(site b of 2) - the fit did NOT converge" in fig._suptitle.get_text()
         for line in ax.get_lines()[:-1]:  # the last is the zero line
             np.testing.assert_allclose(line.get_ydata(), -2.0, atol=1e-9)
         plt.close(fig)
     fig = jo.plot_stack_fit(sample, spectra, Fit)
-    assert fig.axes[1].get_ylabel() == "model - data" and "(site a of 2)" in fig._suptitle.get_text()
+    assert fig.axes[1].get_ylabel() == "model - data" and "(site a of 2)\n" in fig._suptitle.get_text()
+    assert "NOT converged" not in fig._suptitle.get_text()
     np.testing.assert_allclose(fig.axes[1].get_lines()[0].get_ydata(), 0, atol=1e-9)
     plt.close(fig)
     for kw, msg in [(dict(site=2), r"site must be a position in 0..1 or a site label, got 2"),
