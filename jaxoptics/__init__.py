@@ -5,10 +5,11 @@ from, `eta2` the medium it enters (complex `n + ik`, `k >= 0`, where allowed); a
 vectors `(..., 3)`; dtype follows the inputs.
 
 The fitting names (`fit_eta`, `FitResult`, `OneColumnLeastSquares`, `fit_dispersion`,
-`DispersionFit`, `fit_stack`, `StackFit`) and the figures (`plot_fit`, `plot_stack_fit`,
-`plot_stack_map`) are imported on first use. optimistix, equinox and lineax load when a fit traces
-a program (not when `fit_eta` or `fit_stack` loads its compiled program from the cache); a program
-that only calls the kernels does not load them, and matplotlib loads when a figure is drawn.
+`DispersionFit`, `fit_stack`, `StackFit`) and the figures (`plot_fit`, `plot_dispersion_fit`,
+`plot_stack_fit`, `plot_stack_map`) are imported on first use. optimistix, equinox and lineax
+load when a fit traces a program (not when `fit_eta` or `fit_stack` loads its compiled program
+from the cache); a program that only calls the kernels does not load them, and matplotlib loads
+when a figure is drawn.
 """
 
 import typing as _typing
@@ -88,6 +89,7 @@ _LAZY = {
     "fit_stack": "._stack_fit",
     "StackFit": "._stack_fit",
     "plot_fit": "._plot",
+    "plot_dispersion_fit": "._plot",
     "plot_stack_fit": "._plot",
     "plot_stack_map": "._plot",
 }
@@ -99,6 +101,7 @@ if _typing.TYPE_CHECKING:
     from ._dispersion_fit import fit_dispersion as fit_dispersion
     from ._stack_fit import StackFit as StackFit
     from ._stack_fit import fit_stack as fit_stack
+    from ._plot import plot_dispersion_fit as plot_dispersion_fit
     from ._plot import plot_fit as plot_fit
     from ._plot import plot_stack_fit as plot_stack_fit
     from ._plot import plot_stack_map as plot_stack_map

@@ -1,7 +1,8 @@
-"""Figures of fits: reflectance curves with the fitted index (`plot_fit`), layered-sample spectra
-with the fitted model and the residuals (`plot_stack_fit`), and the fitted parameters over a map
-(`plot_stack_map`); `python -m jaxoptics fit --plot` and `fit-stack --plot` draw them. matplotlib
-is imported when a figure is drawn."""
+"""Figures of fits: reflectance curves with the fitted index (`plot_fit`), a fitted dispersion law
+with its error band and residuals (`plot_dispersion_fit`), layered-sample spectra with the fitted
+model and the residuals (`plot_stack_fit`), and the fitted parameters over a map
+(`plot_stack_map`). `python -m jaxoptics fit --plot` draws the first, `fit-stack --plot` the last
+two. matplotlib is imported when a figure is drawn."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ if TYPE_CHECKING:
     from jaxtyping import ArrayLike, Float
     from matplotlib.figure import Figure
 
+    from ._dispersion_fit import DispersionFit
     from ._fit_result import FitResult
     from ._sample import Sample
     from ._spectra import Spectra
@@ -78,6 +80,56 @@ def plot_fit(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], fit
                         f"{pol[k]}{at}")
     shown = "" if which is not None or n <= MAX_CURVES else f" (curves 0-{MAX_CURVES - 1} of {n})"
     _finish_index_figure(ax, axr, f"{title or 'index fit'}{shown}")
+    return fig
+
+
+def plot_dispersion_fit(wavelength_um: Float[ArrayLike, " w"], theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "w m"],
+                        fit: DispersionFit, *, eta1: float = 1.0, polarization: str = "unpolarized",
+                        title: str | None = None) -> Figure:
+    """A matplotlib figure of a dispersion fit (`fit`, the `DispersionFit` of `fit_dispersion` on
+    these data): the fitted law `n(lambda)` over the measured range with its band of two standard
+    errors (`fit.index`), marked at the measured wavelengths, and the residuals `R_model - R` against
+    angle, one colour per wavelength. The title names the law and says if the fit did not converge.
+
+    - `wavelength_um`, `theta`, `R`, `eta1`, `polarization`: as given to `fit_dispersion`.
+
+    Returns the `Figure` (made with `pyplot`, so a notebook shows it); save it with `savefig`."""
+    import matplotlib.pyplot as plt
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    lam = np.asarray(wavelength_um, np.float64)
+    theta = np.asarray(theta, np.float64)
+    R = np.asarray(R, np.float64)
+    if lam.ndim != 1 or theta.ndim != 1 or R.shape != (lam.size, theta.size):
+        raise ValueError(f"wavelength_um must be (w,), theta (m,) and R (w, m); got {lam.shape}, {theta.shape} and {R.shape}")
+    from ._fit import _check_polarization
+
+    _check_polarization(polarization, ())
+    lo, hi = lam.min(), lam.max()
+    grid = np.linspace(lo - 0.03 * (hi - lo), hi + 0.03 * (hi - lo), 300)
+    n_grid, se_grid = (np.asarray(x) for x in fit.index(grid))
+    n_lam = np.asarray(fit.index(lam)[0])
+    fig, (ax, axr) = plt.subplots(1, 2, figsize=(11, 4.5))
+    ax.fill_between(grid, n_grid - 2 * se_grid, n_grid + 2 * se_grid, color="C1", alpha=0.3, label="+- 2 standard errors")
+    ax.plot(grid, n_grid, "C1", lw=1.2, label=f"{fit.model} law, {fit.terms} terms")
+    ax.plot(lam, n_lam, "o", color="C1", ms=4, label="measured wavelengths")
+    ax.set_xlabel("wavelength (um)")
+    ax.set_ylabel("n")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    resid = _index_reflectance(float(eta1), str(polarization))(n_lam, theta) - R
+    norm = Normalize(lo, hi if hi > lo else lo + 1)
+    for k in np.argsort(lam):
+        axr.plot(np.rad2deg(theta), resid[k], ".", ms=3, color=plt.get_cmap("viridis")(norm(lam[k])))
+    fig.colorbar(ScalarMappable(norm, "viridis"), ax=axr, label="wavelength (um)")
+    axr.axhline(0, color="k", lw=0.8)
+    axr.set_xlabel("angle of incidence (degrees)")
+    axr.set_ylabel("model - data")
+    axr.grid(alpha=0.3)
+    failed = "" if bool(np.asarray(fit.converged)) else " - the fit did NOT converge"
+    fig.suptitle(f"{title or 'dispersion fit'}: {fit.model}, chi2/dof = {float(fit.chi2_reduced):.3g}{failed}", fontsize=10)
+    fig.tight_layout()
     return fig
 
 

@@ -427,6 +427,41 @@ def test_dispersion_fit_recovers_fused_silica():
     assert bool(fc.converged) and abs(float(fc.index(0.5893)[0]) - 1.458403) < 5e-4
 
 
+def test_plot_dispersion_fit_draws_the_law_and_the_residuals():
+    """`plot_dispersion_fit`: the fitted Cauchy law (its closed form from the coefficients) over the
+    measured range, at each measured wavelength, and tmm's reflectance of the law's index minus the
+    data, one series per wavelength; the title says when the fit did not converge."""
+    import matplotlib.pyplot as plt
+
+    lam = np.array([0.4, 0.5, 0.65, 0.8, 1.0])
+    theta = np.deg2rad(np.linspace(0, 85, 30))
+    R = np.stack([tmm_curve(1.0, float(jo.material_index("fused_silica", l)), theta, "s") for l in lam])
+    R = R + 1e-3 * np.random.default_rng(5).normal(size=R.shape)
+    f = jo.fit_dispersion(lam, theta, R, model="cauchy", terms=3, polarization="s", sigma=1e-3)
+    A, B, C = np.asarray(f.coefficients)
+    cauchy = lambda l: A + B / l**2 + C / l**4  # noqa: E731
+    fig = jo.plot_dispersion_fit(lam, theta, R, f, polarization="s", title="silica")
+    ax, axr = fig.axes[:2]
+    law, marks = ax.get_lines()[:2]
+    x, y = law.get_data()
+    assert x.min() < lam.min() and x.max() > lam.max()
+    np.testing.assert_allclose(y, cauchy(x), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(marks.get_ydata(), cauchy(lam), rtol=0, atol=1e-12)
+    series = [l for l in axr.get_lines() if l.get_marker() == "."]
+    assert len(series) == lam.size
+    for k, line in enumerate(series):  # drawn in order of wavelength, which lam already is
+        np.testing.assert_allclose(line.get_ydata(), tmm_curve(1.0, cauchy(lam[k]), theta, "s") - R[k], rtol=0, atol=1e-12)
+    assert axr.get_ylabel() == "model - data" and "NOT converged" not in fig._suptitle.get_text()
+    plt.close(fig)
+    fig = jo.plot_dispersion_fit(lam, theta, R, dataclasses.replace(f, converged=np.asarray(False)), polarization="s")
+    assert fig._suptitle.get_text().endswith("the fit did NOT converge")
+    plt.close(fig)
+    with pytest.raises(ValueError, match=r"R \(w, m\)"):
+        jo.plot_dispersion_fit(lam[:-1], theta, R, f)
+    with pytest.raises(ValueError, match="polarization must be"):
+        jo.plot_dispersion_fit(lam, theta, R, f, polarization="x")
+
+
 # ---- CSV and CLI ----
 
 def _write(tmp_path, text, name="data.csv"):
