@@ -34,6 +34,45 @@ def _index(model, p, lam, terms):
     return sellmeier(lam, p[:terms], p[terms:])
 
 
+# A Sellmeier pole beyond the longest measured wavelength is fitted through `(a, b) = (B/C, 1/C)`,
+# in which its term reads `a lambda^2 / (b lambda^2 - 1)`. Data that end well short of the pole see
+# only its tail, `-a lambda^2 (1 + b lambda^2 + ...)`: in `(B, C)` the best fit then lies at
+# infinity (C grows with B/C fixed) and the solver walks down a valley without end, while in
+# `(a, b)` it is a finite point with `b` near zero and an honest error. Poles at shorter
+# wavelengths keep `(B, C)`, whose limit C -> 0 is a finite point already. `far` marks the terms
+# fitted through the reciprocal; it is decided from the starting poles.
+
+def _far_poles(model, terms, p0, lam):
+    if model == "cauchy":
+        return jnp.zeros((terms,), bool)
+    return p0[terms:] > jnp.max(lam) ** 2
+
+
+def _to_internal(model, terms, p, far):
+    if model == "cauchy":
+        return p
+    B, C = p[:terms], p[terms:]
+    Cs = jnp.where(far, C, 1)
+    return jnp.concatenate([jnp.where(far, B / Cs, B), jnp.where(far, 1 / Cs, C)])
+
+
+def _to_coefficients(model, terms, q, far):
+    if model == "cauchy":
+        return q
+    a, b = q[:terms], q[terms:]
+    bs = jnp.where(far, b, 1)
+    return jnp.concatenate([jnp.where(far, a / bs, a), jnp.where(far, 1 / bs, b)])
+
+
+def _internal_index(model, q, lam, terms, far):
+    if model == "cauchy":
+        return cauchy(lam, q)
+    a, b, far = q[None, :terms], q[None, terms:], far[None, :]
+    l2 = (lam * lam)[:, None]
+    den = jnp.where(far, b * l2 - 1, l2 - b)
+    return jnp.sqrt(1 + jnp.sum(a * l2 / den, axis=-1))
+
+
 @result
 class DispersionFit:
     """Result of `fit_dispersion`.
@@ -41,9 +80,16 @@ class DispersionFit:
     **Fields:** `model` ("cauchy" or "sellmeier"), `terms`; `coefficients` (`(A, B, C, ...)` for
     Cauchy, `(B_1..B_k, C_1..C_k)` for Sellmeier, wavelengths in micrometres); `covariance` and
     `stderr` of the coefficients; `converged`; `residual_rms` of the reflectance; `chi2_reduced`;
-    `num_steps`; `condition_number` of `J^T J` (large for Sellmeier fits, whose coefficients are
-    strongly correlated: judge the fit by `index(wavelength_um)` and its error, not by single
-    coefficients).
+    `num_steps`; `condition_number` of `J^T J` in the parameters the fit moves, scaled to unit
+    diagonal (large for Sellmeier fits, whose coefficients are strongly correlated: judge the fit
+    by `index(wavelength_um)` and its error, not by single coefficients).
+
+    A Sellmeier pole that starts beyond the longest measured wavelength is fitted through
+    `(B/C, 1/C)`, in which a pole at infinity (the term `-B/C lambda^2`) is an ordinary point.
+    Where the data see only the pole's tail, `1/C` comes out near zero, of either sign, and the
+    reported `C` (and `B`) carry standard errors larger than their values: the pole is not
+    located, while `index` stays determined. `covariance` is carried over to `(B, C)` to first
+    order, which leaves the error of `index` as it is in the fitted parameters.
     """
 
     model: str = static()
@@ -84,14 +130,16 @@ def _initial(model, terms, lam, n):
 def _solve(theta, lam, R, w, eta1, p0, *, model, terms, polarization, solver, max_steps, sigma_given):
     cos_i = materialize(jnp.cos(theta))  # once, not in every loop over the residuals (see `_fit_batch`)
 
-    def residual(p, _):
-        n = _index(model, p, lam, terms)
+    far = _far_poles(model, terms, p0, lam)
+
+    def residual(q, _):
+        n = _internal_index(model, q, lam, terms, far)
         return ((_model(cos_i[None, :], eta1, n[:, None], polarization) - R) * w).ravel()
 
-    sol = optx.least_squares(residual, solver, p0, max_steps=max_steps, throw=False)
-    p = sol.value
-    r = residual(p, None)
-    J = jax.jacfwd(residual)(p, None)
+    sol = optx.least_squares(residual, solver, _to_internal(model, terms, p0, far), max_steps=max_steps, throw=False)
+    q = sol.value
+    r = residual(q, None)
+    J = jax.jacfwd(residual)(q, None)
     JTJ = J.T @ J
     # Scale the normal matrix to unit diagonal before inverting (the coefficients differ by orders
     # of magnitude); the pseudo-inverse drops only directions the data cannot see at all.
@@ -101,12 +149,17 @@ def _solve(theta, lam, R, w, eta1, p0, *, model, terms, polarization, solver, ma
     ev = jnp.linalg.eigvalsh(S)
     cond = ev[-1] / jnp.maximum(ev[0], jnp.finfo(S.dtype).tiny)
     cov = jnp.linalg.pinv(S, rtol=jnp.finfo(S.dtype).eps * S.shape[0], hermitian=True) / (d[:, None] * d[None, :])
-    dof = r.shape[0] - p.shape[0]
+    dof = r.shape[0] - q.shape[0]
     chi2 = jnp.sum(r * r) / dof
     cov = cov * (jnp.maximum(chi2, 1) if sigma_given else chi2)  # as in fit_eta
+    ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(jnp.diagonal(cov)))
+    # report (B, C): the covariance carried over to first order, which leaves the delta-method error
+    # of `DispersionFit.index` what it is in the fitted parameters
+    p = _to_coefficients(model, terms, q, far)
+    T = jax.jacfwd(_to_coefficients, argnums=2)(model, terms, q, far)
+    cov = T @ cov @ T.T
     se = jnp.sqrt(jnp.diagonal(cov))
     rms = jnp.sqrt(jnp.mean((r / w.ravel()) ** 2))
-    ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(p)) & jnp.all(jnp.isfinite(se))
     return p, cov, se, ok, rms, chi2, sol.stats["num_steps"], cond
 
 
@@ -125,9 +178,10 @@ def fit_dispersion(wavelength_um: Float[ArrayLike, " w"], theta: Float[ArrayLike
     - `model`: `"sellmeier"` (`n^2 = 1 + sum B_i lambda^2/(lambda^2 - C_i)`) or `"cauchy"`
       (`n = A + B/lambda^2 + C/lambda^4 + ...`).
     - `terms`: Sellmeier terms or Cauchy coefficients; default 3 for both. A 3-term Sellmeier law
-      (6 coefficients, one pole in the infrared) is determined only by precise data over a wide
-      wavelength range: with noisy data its infrared pole wanders along a flat valley and the fit
-      reports `converged=False`; use `terms=2` (or Cauchy) there.
+      (6 coefficients, two poles in the ultraviolet and one in the infrared) is determined only by
+      precise data over a wide wavelength range: with noisy data its coefficients move along flat
+      valleys (two poles merge, the condition number is huge) and the fit often reports
+      `converged=False`; use `terms=2` (or Cauchy) there.
     - `eta1`, `polarization`, `sigma`: as in `fit_eta` (`sigma` broadcastable to `(w, m)`).
     - `init`: starting coefficients (same layout as `DispersionFit.coefficients`). By default each
       wavelength is first fitted alone with `fit_eta` (batched), then the law is fitted to those

@@ -98,18 +98,18 @@ def plot_dispersion_fit(wavelength_um: Float[ArrayLike, " w"], theta: Float[Arra
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
 
+    from ._fit import _check_polarization
+
     lam = np.asarray(wavelength_um, np.float64)
     theta = np.asarray(theta, np.float64)
     R = np.asarray(R, np.float64)
     if lam.ndim != 1 or theta.ndim != 1 or R.shape != (lam.size, theta.size):
         raise ValueError(f"wavelength_um must be (w,), theta (m,) and R (w, m); got {lam.shape}, {theta.shape} and {R.shape}")
-    from ._fit import _check_polarization
-
     _check_polarization(polarization, ())
     lo, hi = lam.min(), lam.max()
     grid = np.linspace(lo - 0.03 * (hi - lo), hi + 0.03 * (hi - lo), 300)
-    n_grid, se_grid = (np.asarray(x) for x in fit.index(grid))
-    n_lam = np.asarray(fit.index(lam)[0])
+    n_all, se_all = (np.asarray(x) for x in fit.index(np.concatenate([grid, lam])))
+    n_grid, se_grid, n_lam = n_all[: grid.size], se_all[: grid.size], n_all[grid.size :]
     fig, (ax, axr) = plt.subplots(1, 2, figsize=(11, 4.5))
     ax.fill_between(grid, n_grid - 2 * se_grid, n_grid + 2 * se_grid, color="C1", alpha=0.3, label="+- 2 standard errors")
     ax.plot(grid, n_grid, "C1", lw=1.2, label=f"{fit.model} law, {fit.terms} terms")

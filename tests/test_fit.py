@@ -427,6 +427,33 @@ def test_dispersion_fit_recovers_fused_silica():
     assert bool(fc.converged) and abs(float(fc.index(0.5893)[0]) - 1.458403) < 5e-4
 
 
+def test_dispersion_fit_reports_an_infrared_pole_beyond_the_data_honestly():
+    """Fused silica's infrared pole lies at 9.9 um; data that end at 1.55 um see only its tail, so a
+    2-term Sellmeier fit cannot place the pole. Over 24 noise draws: a pole put far beyond the data
+    (|C_2| > 1000 um^2) always carries a standard error larger than itself, never a confident value;
+    every fit converges except where the best fit lies at infinite coefficients (two poles merging
+    with opposite B), which says so and carries standard errors larger than its B values; and the
+    index at 589.3 nm scatters about Malitson's value as its own error says (RMS of
+    (n - n_true)/stderr between 0.7 and 1.3)."""
+    lam = np.array([0.365, 0.405, 0.436, 0.486, 0.546, 0.633, 0.706, 0.852, 1.014, 1.33, 1.55])
+    theta = np.deg2rad(np.linspace(0, 85, 60))
+    R = np.stack([tmm_curve(1.0, float(jo.material_index("fused_silica", l)), theta, "unpolarized") for l in lam])
+    pulls, converged = [], 0
+    for seed in range(100, 124):
+        Rn = R + 1e-3 * np.random.default_rng(seed).normal(size=R.shape)
+        f = jo.fit_dispersion(lam, theta, Rn, model="sellmeier", terms=2, sigma=1e-3)
+        coef, se_coef = np.asarray(f.coefficients), np.asarray(f.stderr)
+        assert abs(coef[3]) < 1e3 or se_coef[3] > abs(coef[3]), (seed, coef, se_coef)
+        if bool(f.converged):
+            converged += 1
+        else:
+            assert np.all(se_coef[:2] > np.abs(coef[:2])), (seed, coef, se_coef)
+        n, se = f.index(0.5893)
+        pulls.append((float(n) - 1.458403) / float(se))
+    assert converged >= 22
+    assert 0.7 < np.sqrt(np.mean(np.square(pulls))) < 1.3
+
+
 def test_plot_dispersion_fit_draws_the_law_and_the_residuals():
     """`plot_dispersion_fit`: the fitted Cauchy law (its closed form from the coefficients) over the
     measured range, at each measured wavelength, and tmm's reflectance of the law's index minus the
