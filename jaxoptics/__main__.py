@@ -4,7 +4,8 @@ Commands:
   demo    print R_s, R_p, R and T across angles for air -> glass and glass -> air, with the
           critical and Brewster angles (a quick check that the install works).
   fit     fit the refractive index to reflectance-versus-angle data in a CSV file
-          (`fit --example` uses the bundled N-BK7 measurement).
+          (`fit --example` uses the bundled N-BK7 measurement); with `--dispersion`, also one
+          Sellmeier or Cauchy law over all its wavelengths.
   fit-stack  fit a layered sample (film thicknesses, n, k, dispersion) to spectroscopic data
           (psi/delta, N/C/S, Mueller, R, T) with a TOML model (`fit-stack --example`: SiO2 on Si).
   bench   measure speed (and error) side by side on this machine; --quick for a short run.
@@ -73,6 +74,9 @@ def _fit(args) -> int:
     if args.example == bool(args.file):
         print("fit: give either a CSV file or --example", file=sys.stderr)
         return 2
+    if args.terms is not None and not args.dispersion:
+        print("fit: --terms goes with --dispersion", file=sys.stderr)
+        return 2
     path = jo.example_path() if args.example else args.file
     try:
         data = jo.load_reflectance(path)
@@ -99,6 +103,9 @@ def _fit(args) -> int:
         except ValueError as e:
             print(f"error: {path}, curve at lines {c.lines[0]}-{c.lines[-1]}: {e}", file=sys.stderr)
             return 2
+    if args.dispersion and (why := _law_refused(curves, args)):
+        print(f"error: {path}: --dispersion {why}", file=sys.stderr)
+        return 2
     # Curves on the same angles (any polarization and wavelength) are fitted together: one
     # compiled program and one call per group.
     groups: dict = {}
@@ -139,8 +146,79 @@ def _fit(args) -> int:
                       f"(inverse-variance mean of {len(rs)} curves)")
     if any(not bool(r.converged) for _, r in fits):
         print("warning: some fits did not converge (see the converged column)", file=sys.stderr)
+    if args.dispersion:
+        return _fit_law(curves, args, str(path))
     if args.plot:
         _plot_fits(fits, args, str(path))
+        print(f"plot saved to {args.plot}")
+    return 0
+
+
+def _law_refused(curves, args) -> str | None:
+    """Why `fit --dispersion` cannot fit one law to these curves (one polarization, two or more
+    wavelengths, all on the same angles), or None."""
+    import numpy as np
+
+    if args.absorbing:
+        return "fits a real index law; leave out --absorbing"
+    terms = 3 if args.terms is None else args.terms
+    if args.dispersion == "sellmeier" and terms not in (1, 2, 3) or terms < 1:
+        return f"{args.dispersion}: --terms {terms} is not available (Sellmeier: 1-3 terms; Cauchy: 1 or more coefficients)"
+    if any(c.wavelength_um is None for c in curves):
+        return "needs a wavelength_um column"
+    pols = sorted({c.polarization for c in curves})
+    if len(pols) > 1:
+        return f"fits curves of one polarization, these have {', '.join(pols)}: choose one with --polarization"
+    if len({c.wavelength_um for c in curves}) < 2:
+        return f"needs curves at two or more wavelengths, these are all at {curves[0].wavelength_um:g} um"
+    first = curves[0]
+    n_par = terms * (2 if args.dispersion == "sellmeier" else 1)
+    if len(curves) * first.theta.size <= n_par:
+        return f"{len(curves) * first.theta.size} points cannot determine {n_par} coefficients"
+    for c in curves[1:]:
+        if not np.array_equal(c.theta, first.theta):
+            what = "other angles than" if c.theta.size == first.theta.size else f"{c.theta.size} angles, against {first.theta.size} at"
+            return (f"needs every wavelength measured at the same angles: {c.wavelength_um:g} um (lines "
+                    f"{c.lines.min()}-{c.lines.max()}) has {what} {first.wavelength_um:g} um "
+                    f"(lines {first.lines.min()}-{first.lines.max()})")
+    return None
+
+
+def _fit_law(curves, args, path) -> int:
+    """`fit --dispersion`: one law fitted to all the curves (checked by `_law_refused`), its
+    coefficients and the index at each wavelength."""
+    import numpy as np
+
+    import jaxoptics as jo
+
+    curves = sorted(curves, key=lambda c: c.wavelength_um)
+    first, pol = curves[0], curves[0].polarization
+    lam = np.array([c.wavelength_um for c in curves])
+    R = np.stack([c.R for c in curves])
+    sigma = None if first.sigma is None else np.stack([c.sigma for c in curves])
+    law = jo.fit_dispersion(lam, first.theta, R, model=args.dispersion, terms=args.terms, eta1=args.eta1,
+                            polarization=pol, sigma=sigma)
+    coef, se = np.asarray(law.coefficients), np.asarray(law.stderr)
+    k = law.terms
+    names = ([f"B_{i + 1}" for i in range(k)] + [f"C_{i + 1} (um^2)" for i in range(k)] if law.model == "sellmeier"
+             else [f"{'ABCDEFGH'[i]}" + ("" if i == 0 else f" (um^{2 * i})") for i in range(k)])
+    print(f"\n{law.model} law, {k} {'terms' if law.model == 'sellmeier' else 'coefficients'}, fitted to all {R.size} points: "
+          f"converged {'yes' if bool(law.converged) else 'NO'}, chi2/dof {float(law.chi2_reduced):.3g}, "
+          f"rms resid {float(law.residual_rms):.3g}, {int(law.num_steps)} steps, condition number {float(law.condition_number):.3g}")
+    for name, v, e in zip(names, coef, se):
+        print(f"  {name:<14} {v:>14.7g} +- {e:.3g}")
+    n, n_se = (np.asarray(x) for x in law.index(lam))
+    print(f"{'wavelength_um':>13} {'n (law)':>12} {'stderr':>9}")
+    for l, v, e in zip(lam, n, n_se):
+        print(f"{l:>13g} {v:>12.7f} {e:>9.2g}")
+    if not bool(law.converged):
+        print("warning: the dispersion fit did not converge", file=sys.stderr)
+    if args.plot:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        fig = jo.plot_dispersion_fit(lam, first.theta, R, law, eta1=args.eta1, polarization=pol, title=Path(path).name)
+        fig.savefig(args.plot, dpi=120)
         print(f"plot saved to {args.plot}")
     return 0
 
@@ -296,7 +374,13 @@ def main(argv=None) -> int:
                    help="polarization of files without a polarization column; with one, fit only these rows")
     p.add_argument("--eta1", type=float, default=1.0, help="index of the incident medium (default 1.0)")
     p.add_argument("--absorbing", action="store_true", help="fit a complex index n + ik")
-    p.add_argument("--plot", metavar="OUT.png", help="save data, fit and residuals as a figure")
+    p.add_argument("--dispersion", choices=["sellmeier", "cauchy"],
+                   help="also fit this law n(wavelength) to all curves at once (one polarization, every "
+                        "wavelength on the same angles)")
+    p.add_argument("--terms", type=int, help="Sellmeier terms or Cauchy coefficients (default 3; 2 for noisy "
+                                             "Sellmeier data over the visible)")
+    p.add_argument("--plot", metavar="OUT.png", help="save data, fit and residuals as a figure (with --dispersion: "
+                                                     "the law with its error band and the residuals)")
     p.add_argument("--no-cache", action="store_true",
                    help="do not keep compiled programs between runs (by default they are kept in "
                         "$JAXOPTICS_CACHE_DIR or ~/.cache/jaxoptics/xla; JAXOPTICS_CACHE_DIR=off turns it off)")

@@ -586,6 +586,54 @@ def test_cli_fits_curves_on_shared_angles_together(capsys, tmp_path):
         assert int(l[2]) == th.size and abs(float(l[3]) - n) < 1e-6
 
 
+def test_cli_fits_a_dispersion_law(capsys, tmp_path):
+    """`fit --dispersion`: tmm s-reflectance of fused silica with noise at six wavelengths, sigma
+    given. The printed coefficients are `fit_dispersion`'s on the same data, the printed index at
+    each wavelength is within 4 standard errors of Malitson's, and --plot draws the law; files the
+    law cannot be fitted to are refused with the reason."""
+    import matplotlib.pyplot as plt
+
+    lam = [0.4, 0.5, 0.6, 0.8, 1.0, 1.3]
+    th = np.deg2rad(np.linspace(5, 85, 25))
+    rng = np.random.default_rng(11)
+    R = np.stack([tmm_curve(1.0, float(jo.material_index("fused_silica", l)), th, "s") for l in lam])
+    R = R + 1e-3 * rng.normal(size=R.shape)
+    rows = [f"{np.rad2deg(t):.10f},{r:.12f},s,{l},0.001" for l, Rl in zip(lam, R) for t, r in zip(th, Rl)]
+    head = "angle_deg,R,polarization,wavelength_um,sigma\n"
+    p = _write(tmp_path, head + "\n".join(rows[::-1]) + "\n")  # any row order
+    png = tmp_path / "law.png"
+    assert main(["fit", str(p), "--dispersion", "sellmeier", "--terms", "2", "--plot", str(png), "--no-cache"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    direct = _fit_dispersion(np.array(lam), th, R, model="sellmeier", terms=2, polarization="s", sigma=1e-3)
+    coef = [float(l.split()[-3]) for l in out if l.strip().startswith(("B_", "C_"))]
+    np.testing.assert_allclose(coef, np.asarray(direct.coefficients), rtol=1e-6)
+    start = [i for i, l in enumerate(out) if l.split()[:2] == ["wavelength_um", "n"]][0]
+    table = np.array([[float(x) for x in l.split()] for l in out[start + 1:start + 1 + len(lam)]])
+    np.testing.assert_array_equal(table[:, 0], lam)
+    truth = np.asarray(jo.material_index("fused_silica", np.array(lam)))
+    assert np.all(np.abs(table[:, 1] - truth) < 4 * table[:, 2]), (table, truth)
+    assert png.stat().st_size > 10000 and "sellmeier" in plt.gcf()._suptitle.get_text()
+    plt.close("all")
+
+    def refused(text, *extra):
+        f = _write(tmp_path, text, "bad.csv")
+        assert main(["fit", str(f), "--dispersion", "cauchy", "--no-cache", *extra]) == 2
+        return capsys.readouterr().err
+
+    assert "choose one with --polarization" in refused(head + "\n".join(rows[:25] + [r.replace(",s,", ",p,") for r in rows[25:50]]) + "\n")
+    err = refused(head + "\n".join(rows[:25] + rows[26:50]) + "\n")
+    assert "same angles: 0.5 um (lines 27-50) has 24 angles, against 25 at 0.4 um (lines 2-26)" in err
+    assert "needs a wavelength_um column" in refused("angle_deg,R\n" + "\n".join(r.rsplit(",", 3)[0] for r in rows[:25]) + "\n")
+    assert "two or more wavelengths" in refused(head + "\n".join(rows[:25]) + "\n")
+    assert "leave out --absorbing" in refused(head + "\n".join(rows) + "\n", "--absorbing")
+    f = _write(tmp_path, head + "\n".join(rows) + "\n", "four.csv")
+    assert main(["fit", str(f), "--dispersion", "sellmeier", "--terms", "4", "--no-cache"]) == 2
+    assert "--terms 4 is not available" in capsys.readouterr().err
+    assert "4 points cannot determine 6 coefficients" in refused(head + "\n".join(rows[0:50:25] + rows[1:50:25]) + "\n", "--terms", "6")
+    assert main(["fit", str(p), "--terms", "2", "--no-cache"]) == 2
+    assert "--terms goes with --dispersion" in capsys.readouterr().err
+
+
 def test_cli_reports_an_index_the_data_cannot_exclude(capsys, tmp_path):
     """Measured at 0-15 degrees only, this curve (eta = 1.2) fits about as well with 0.834: the
     CLI says so next to the fit, and the standard error covers both."""
