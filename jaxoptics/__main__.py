@@ -201,7 +201,7 @@ def _fit_law(curves, args, path) -> int:
     coef, se = np.asarray(law.coefficients), np.asarray(law.stderr)
     k = law.terms
     names = ([f"B_{i + 1}" for i in range(k)] + [f"C_{i + 1} (um^2)" for i in range(k)] if law.model == "sellmeier"
-             else [f"{'ABCDEFGH'[i]}" + ("" if i == 0 else f" (um^{2 * i})") for i in range(k)])
+             else [(chr(65 + i) if i < 26 else f"a_{i}") + ("" if i == 0 else f" (um^{2 * i})") for i in range(k)])
     print(f"\n{law.model} law, {k} {'terms' if law.model == 'sellmeier' else 'coefficients'}, fitted to all {R.size} points: "
           f"converged {'yes' if bool(law.converged) else 'NO'}, chi2/dof {float(law.chi2_reduced):.3g}, "
           f"rms resid {float(law.residual_rms):.3g}, {int(law.num_steps)} steps, condition number {float(law.condition_number):.3g}")
