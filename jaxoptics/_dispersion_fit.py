@@ -48,20 +48,14 @@ def _far_poles(model, terms, p0, lam):
     return p0[terms:] > jnp.max(lam) ** 2
 
 
-def _to_internal(model, terms, p, far):
+def _reciprocal(model, terms, p, far):
+    """`(B, C) -> (B/C, 1/C)` on the `far` terms, identity on the others: from the coefficients to
+    the fitted parameters, and back (the map is its own inverse)."""
     if model == "cauchy":
         return p
-    B, C = p[:terms], p[terms:]
-    Cs = jnp.where(far, C, 1)
-    return jnp.concatenate([jnp.where(far, B / Cs, B), jnp.where(far, 1 / Cs, C)])
-
-
-def _to_coefficients(model, terms, q, far):
-    if model == "cauchy":
-        return q
-    a, b = q[:terms], q[terms:]
-    bs = jnp.where(far, b, 1)
-    return jnp.concatenate([jnp.where(far, a / bs, a), jnp.where(far, 1 / bs, b)])
+    x, y = p[:terms], p[terms:]
+    ys = jnp.where(far, y, 1)
+    return jnp.concatenate([jnp.where(far, x / ys, x), jnp.where(far, 1 / ys, y)])
 
 
 def _internal_index(model, q, lam, terms, far):
@@ -136,7 +130,7 @@ def _solve(theta, lam, R, w, eta1, p0, *, model, terms, polarization, solver, ma
         n = _internal_index(model, q, lam, terms, far)
         return ((_model(cos_i[None, :], eta1, n[:, None], polarization) - R) * w).ravel()
 
-    sol = optx.least_squares(residual, solver, _to_internal(model, terms, p0, far), max_steps=max_steps, throw=False)
+    sol = optx.least_squares(residual, solver, _reciprocal(model, terms, p0, far), max_steps=max_steps, throw=False)
     q = sol.value
     r = residual(q, None)
     J = jax.jacfwd(residual)(q, None)
@@ -155,8 +149,8 @@ def _solve(theta, lam, R, w, eta1, p0, *, model, terms, polarization, solver, ma
     ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(jnp.diagonal(cov)))
     # report (B, C): the covariance carried over to first order, which leaves the delta-method error
     # of `DispersionFit.index` what it is in the fitted parameters
-    p = _to_coefficients(model, terms, q, far)
-    T = jax.jacfwd(_to_coefficients, argnums=2)(model, terms, q, far)
+    p = _reciprocal(model, terms, q, far)
+    T = jax.jacfwd(_reciprocal, argnums=2)(model, terms, q, far)
     cov = T @ cov @ T.T
     se = jnp.sqrt(jnp.diagonal(cov))
     rms = jnp.sqrt(jnp.mean((r / w.ravel()) ** 2))
