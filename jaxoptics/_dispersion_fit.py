@@ -72,8 +72,12 @@ class DispersionFit:
     """Result of `fit_dispersion`.
 
     **Fields:** `model` ("cauchy" or "sellmeier"), `terms`; `coefficients` (`(A, B, C, ...)` for
-    Cauchy, `(B_1..B_k, C_1..C_k)` for Sellmeier, wavelengths in micrometres); `covariance` and
-    `stderr` of the coefficients; `converged`; `residual_rms` of the reflectance; `chi2_reduced`;
+    Cauchy, `(B_1..B_k, C_1..C_k)` for Sellmeier, wavelengths in micrometres); `stderr` of each
+    coefficient (huge for a coefficient the data do not determine, such as the split of `B`
+    between two Sellmeier poles that merged); `covariance` of the coefficients over the
+    combinations the data determine (the pseudo-inverse of the normal matrix, which leaves out
+    directions the data do not see at all; `index` propagates it, and where nothing is left out
+    `stderr` is the square root of its diagonal); `converged`; `residual_rms` of the reflectance; `chi2_reduced`;
     `num_steps`; `condition_number` of `J^T J` in the parameters the fit moves, scaled to unit
     diagonal (large for Sellmeier fits, whose coefficients are strongly correlated: judge the fit
     by `index(wavelength_um)` and its error, not by single coefficients).
@@ -136,23 +140,33 @@ def _solve(theta, lam, R, w, eta1, p0, *, model, terms, polarization, solver, ma
     J = jax.jacfwd(residual)(q, None)
     JTJ = J.T @ J
     # Scale the normal matrix to unit diagonal before inverting (the coefficients differ by orders
-    # of magnitude); the pseudo-inverse drops only directions the data cannot see at all.
+    # of magnitude). Two inverses: the pseudo-inverse leaves out the directions the data do not see
+    # at all (eigenvalues at rounding level: two Sellmeier poles that merged, whose B split any
+    # way); it is the covariance of the combinations the data determine, which `index` propagates
+    # (the index does not move along a left-out direction, and keeping one would let rounding in
+    # its gradient, times an unbounded variance, swamp the error). The standard errors come from
+    # the inverse with nothing left out (eigenvalues floored at eps^2 of the largest, as in
+    # `fit_stack`): a coefficient the data do not determine gets a huge error, never a small one.
     d = jnp.sqrt(jnp.diagonal(JTJ))
     d = jnp.where(d > 0, d, 1)
     S = JTJ / (d[:, None] * d[None, :])
-    ev = jnp.linalg.eigvalsh(S)
+    ev, vec = jnp.linalg.eigh(S)
+    eps, top = jnp.finfo(S.dtype).eps, jnp.maximum(ev[-1], jnp.finfo(S.dtype).tiny)
     cond = ev[-1] / jnp.maximum(ev[0], jnp.finfo(S.dtype).tiny)
-    cov = jnp.linalg.pinv(S, rtol=jnp.finfo(S.dtype).eps * S.shape[0], hermitian=True) / (d[:, None] * d[None, :])
+    seen = ev > eps * S.shape[0] * top
+    dd = d[:, None] * d[None, :]
+    cov = (vec * jnp.where(seen, 1 / jnp.where(seen, ev, 1), 0)[None, :]) @ vec.T / dd
+    cov_all = (vec / jnp.maximum(ev, eps**2 * top)[None, :]) @ vec.T / dd
     dof = r.shape[0] - q.shape[0]
     chi2 = jnp.sum(r * r) / dof
-    cov = cov * (jnp.maximum(chi2, 1) if sigma_given else chi2)  # as in fit_eta
+    scale = jnp.maximum(chi2, 1) if sigma_given else chi2  # as in fit_eta
     ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(jnp.diagonal(cov)))
-    # report (B, C): the covariance carried over to first order, which leaves the delta-method error
-    # of `DispersionFit.index` what it is in the fitted parameters
+    # report (B, C): the covariances carried over to first order, which leaves the delta-method
+    # error of `DispersionFit.index` what it is in the fitted parameters
     p = _reciprocal(model, terms, q, far)
     T = jax.jacfwd(_reciprocal, argnums=2)(model, terms, q, far)
-    cov = T @ cov @ T.T
-    se = jnp.sqrt(jnp.diagonal(cov))
+    cov = scale * (T @ cov @ T.T)
+    se = jnp.sqrt(scale * jnp.abs(jnp.diagonal(T @ cov_all @ T.T)))
     rms = jnp.sqrt(jnp.mean((r / w.ravel()) ** 2))
     return p, cov, se, ok, rms, chi2, sol.stats["num_steps"], cond
 
