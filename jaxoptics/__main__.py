@@ -159,10 +159,12 @@ def _law_refused(curves, args) -> str | None:
     wavelengths, all on the same angles), or None."""
     import numpy as np
 
+    from ._dispersion_fit import _SELLMEIER_POLES, DEFAULT_TERMS
+
     if args.absorbing:
         return "fits a real index law; leave out --absorbing"
-    terms = 3 if args.terms is None else args.terms
-    if args.dispersion == "sellmeier" and terms not in (1, 2, 3) or terms < 1:
+    terms = DEFAULT_TERMS if args.terms is None else args.terms
+    if args.dispersion == "sellmeier" and terms not in _SELLMEIER_POLES or terms < 1:
         return f"{args.dispersion}: --terms {terms} is not available (Sellmeier: 1-3 terms; Cauchy: 1 or more coefficients)"
     if any(c.wavelength_um is None for c in curves):
         return "needs a wavelength_um column"

@@ -23,6 +23,7 @@ if TYPE_CHECKING:
     from jaxtyping import ArrayLike, Float
 
 MODELS = ("cauchy", "sellmeier")
+DEFAULT_TERMS = 3  # Sellmeier terms or Cauchy coefficients
 # Starting poles for Sellmeier fits (micrometres squared): typical of optical glasses and silica,
 # two in the ultraviolet and one in the infrared. The B terms then follow by linear least squares.
 _SELLMEIER_POLES = {1: (0.01,), 2: (0.01, 100.0), 3: (0.0047, 0.0135, 97.9)}
@@ -77,8 +78,8 @@ class DispersionFit:
     between two Sellmeier poles that merged); `covariance` of the coefficients over the
     combinations the data determine (the pseudo-inverse of the normal matrix, which leaves out
     directions the data do not see at all; `index` propagates it, and where nothing is left out
-    `stderr` is the square root of its diagonal); `converged`; `residual_rms` of the reflectance; `chi2_reduced`;
-    `num_steps`; `condition_number` of `J^T J` in the parameters the fit moves, scaled to unit
+    `stderr` is the square root of its diagonal); `converged`; `residual_rms` of the reflectance;
+    `chi2_reduced`; `num_steps`; `condition_number` of `J^T J` in the parameters the fit moves, scaled to unit
     diagonal (large for Sellmeier fits, whose coefficients are strongly correlated: judge the fit
     by `index(wavelength_um)` and its error, not by single coefficients).
 
@@ -206,7 +207,7 @@ def fit_dispersion(wavelength_um: Float[ArrayLike, " w"], theta: Float[ArrayLike
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
     if polarization not in POLARIZATIONS:
         raise ValueError(f"polarization must be one of {POLARIZATIONS}, got {polarization!r}")
-    terms = 3 if terms is None else int(terms)
+    terms = DEFAULT_TERMS if terms is None else int(terms)
     if model == "sellmeier" and terms not in _SELLMEIER_POLES:
         raise ValueError(f"sellmeier terms must be 1, 2 or 3, got {terms}")
     n_par = terms if model == "cauchy" else 2 * terms
