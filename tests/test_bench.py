@@ -228,6 +228,9 @@ def test_stackfit_bench_section():
     # scipy's calls of its model per fit include its finite-difference Jacobian's (4 parameters)
     assert rows[1]["median_calls"] >= 5 and all(r["model_eval_s"] > 0 for r in rows)
     assert "One evaluation of the model at a spectrum's 600 points" in text and "a fit would be 100x faster" in text
+    # the one-film bound with a hand-derived Jacobian computes what fit_stack's model does
+    agree_deg, agree_jac = rows[0]["bound_agree"]
+    assert agree_deg < 1e-9 and agree_jac < 1e-9 and rows[0]["bound_jac_eval_s"] > 0 and "A one-film model written" in text
     # pyElli's model is the same to rounding, and its row's time is read against jaxoptics'
     assert rows[3]["agree_deg"] < 1e-9 and rows[3]["median_calls"] >= 5 and "pyElli's to" in text
     assert "the same scipy loop calls it" in text and text.count("x |") == 4
