@@ -87,6 +87,17 @@ def _fail(path, line, msg):
     raise ValueError(f"{path}, line {line}: {msg}")
 
 
+def _header_names(path, line, text):
+    """The column names of a CSV header line; a line that holds one name with semicolons or tabs in
+    it (a file in another locale's or a spreadsheet's format) is refused, naming the separator."""
+    names = [h.strip() for h in next(csv.reader([text]))]
+    if len(names) == 1:
+        for sep, what in ((";", "semicolons"), ("\t", "tabs")):
+            if sep in names[0]:
+                _fail(path, line, f"columns are separated by commas; this header, {text.strip()!r}, separates them by {what}")
+    return names
+
+
 def load_reflectance(path: str | os.PathLike, *, r_tolerance: float = 0.05) -> ReflectanceData:
     r"""Read reflectance measurements from a CSV file.
 
@@ -102,9 +113,10 @@ def load_reflectance(path: str | os.PathLike, *, r_tolerance: float = 0.05) -> R
     **Returns:** a `ReflectanceData`; `.curves()` splits it by wavelength and polarization.
 
     **Errors:** a `ValueError` naming the file, the line, the column and the value for: an empty
-    file, a missing required column, a row with the wrong number of fields, a value that is not a
-    number, NaN or infinity, an angle outside [0, 90], `R` outside [-tol, 1 + tol], a `sigma` that is
-    not positive, a wavelength that is not positive, an unknown polarization.
+    file, a missing required column, a header separated by semicolons or tabs rather than commas,
+    a row with the wrong number of fields, a value that is not a number, NaN or infinity, an
+    angle outside [0, 90], `R` outside [-tol, 1 + tol], a `sigma` that is not positive, a
+    wavelength that is not positive, an unknown polarization.
     """
     path = str(path)
     p = Path(path)
@@ -115,7 +127,7 @@ def load_reflectance(path: str | os.PathLike, *, r_tolerance: float = 0.05) -> R
     if not rows:
         raise ValueError(f"{path}: the file is empty (no header, no data)")
     header_line, header = rows[0]
-    names = [h.strip() for h in next(csv.reader([header]))]
+    names = _header_names(path, header_line, header)
     lookup = {n.lower(): k for k, n in enumerate(names)}
     cols = {}
     for want in REQUIRED + OPTIONAL:

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from ._data import _fail
+from ._data import _fail, _header_names
 
 if TYPE_CHECKING:
     from jaxtyping import ArrayLike, Float
@@ -35,6 +35,26 @@ _MUELLER = tuple(f"m{i}{j}" for i in range(1, 5) for j in range(1, 5))
 _NEAR = {"psi": "psi_deg", "delta": "delta_deg", "wavelength": "wavelength_nm or wavelength_um", "lambda": "wavelength_nm",
          "angle": "angle_deg", "theta": "angle_deg", "aoi": "angle_deg", "rs": "R_s", "rp": "R_p", "ts": "T_s", "tp": "T_p",
          "wavelength_a": "wavelength_nm", "energy_ev": "wavelength_nm (energies are not read; convert to nm)"}
+
+
+# The range each measured quantity lies in. Measured values may stray outside it by noise, up to 5%
+# of its width; beyond that they are refused as a mix-up of units or columns, with the reason.
+_RANGES = {"psi_deg": (0.0, 90.0), **dict.fromkeys(("N", "C", "S"), (-1.0, 1.0)),
+           **dict.fromkeys(("R", "R_s", "R_p", "T", "T_s", "T_p"), (0.0, 1.0)), **dict.fromkeys(_MUELLER, (-1.0, 1.0))}
+_WHY = {"psi_deg": "Psi lies in [0, 90] degrees (Delta in the psi column?)",
+        **dict.fromkeys(("N", "C", "S"), "N, C and S are cos 2Psi, sin 2Psi cos Delta and sin 2Psi sin Delta, in [-1, 1]"),
+        **dict.fromkeys(("R", "R_s", "R_p", "T", "T_s", "T_p"),
+                        "reflectance and transmittance are fractions in [0, 1] (percent? divide by 100)"),
+        **dict.fromkeys(_MUELLER, "the elements of a Mueller matrix normalized by m11 lie in [-1, 1]")}
+
+
+def _out_of_range(kind, v):
+    """The flat index of the first value of `kind` in `v` outside its range (with the noise margin of
+    `_RANGES`), or None."""
+    lo, hi = _RANGES.get(kind, (-np.inf, np.inf))
+    slack = 0.05 * (hi - lo)
+    bad = np.flatnonzero((np.ravel(v) < lo - slack) | (np.ravel(v) > hi + slack))
+    return int(bad[0]) if bad.size else None
 
 
 class Spectra(NamedTuple):
@@ -72,7 +92,8 @@ def make_spectra(wavelength_nm: Float[ArrayLike, " P"], angle_deg: Float[ArrayLi
     """Build `Spectra` from arrays: `values` maps kind names (see `KINDS`) to arrays `(..., P)`,
     `sigma` (optional) maps the same names to standard deviations of the same shapes. For a map
     (leading axes), `sites` labels its sites and `site_xy` gives their positions in mm, both in
-    the order of the flattened leading axes."""
+    the order of the flattened leading axes. Values are checked as `load_spectra` checks a file's
+    (finite; each quantity in its range up to noise), naming the quantity and the point."""
     w = np.asarray(wavelength_nm, np.float64).reshape(-1)
     a = np.broadcast_to(np.asarray(angle_deg, np.float64), w.shape).copy()
     if not values:
@@ -113,6 +134,12 @@ def _check_values(w, a, kinds, V, S, where):
     if not np.all(np.isfinite(V)):
         i = np.argwhere(~np.isfinite(V))[0]
         raise ValueError(f"{at}non-finite value of {kinds[i[-2]]} at point {i[-1]}")
+    for q, kind in enumerate(kinds):
+        j = _out_of_range(kind, V[..., q, :])
+        if j is not None:
+            site, p = divmod(j, V.shape[-1])
+            where_p = f"point {p}" + (f" of spectrum {site}" if V.ndim > 2 else "")
+            raise ValueError(f"{at}{kind} = {V[..., q, :].reshape(-1)[j]:g} at {where_p}: {_WHY[kind]}")
     if S is not None and (not np.all(np.isfinite(S)) or np.any(S <= 0)):
         raise ValueError(f"{at}sigma must be finite and positive")
 
@@ -132,8 +159,11 @@ def load_spectra(path: str | os.PathLike) -> Spectra:
       the same on every row of a site (`Spectra.site_xy`; `plot_stack_map` draws maps with them).
 
     Errors name the file, the line and the column: a cell that is not a number, a row with NaN
-    (rejected, with its line), a row of the wrong length, an unknown column, angles outside
-    `[0, 90)`, sites with different points, a site whose rows give different positions.
+    (rejected, with its line), a row of the wrong length, an unknown column, a header separated
+    by semicolons or tabs, angles outside `[0, 90)`, a value outside its quantity's range by more
+    than noise (5% of the range: Psi in [0, 90] degrees, N, C, S and normalized Mueller elements
+    in [-1, 1], R and T in [0, 1]), sites with different points, a site whose rows give
+    different positions.
     """
     path = Path(path)
     try:
@@ -144,7 +174,7 @@ def load_spectra(path: str | os.PathLike) -> Spectra:
     if not lines:
         raise ValueError(f"{path}: no header line (the file is empty or all comments)")
     hline, header_text = lines[0]
-    header = [h.strip() for h in next(csv.reader([header_text]))]
+    header = _header_names(path, hline, header_text)
     for j, h in enumerate(header, 1):
         ok = h in KINDS or h in _MUELLER or h in ("wavelength_nm", "wavelength_um", "angle_deg", "site", "x_mm", "y_mm") or (
             h.startswith("sigma_") and h[6:] in KINDS + _MUELLER)
@@ -223,10 +253,10 @@ def load_spectra(path: str | os.PathLike) -> Spectra:
                     sigmas[q] = np.sqrt(np.sum([x * x for x in sig], axis=0)) / len(have)
         if not any(q in values for q in ("N", "C", "S")):
             _fail(path, hline, "Mueller columns given without any of m12, m21, m33, m44, m34, m43 (the isotropic elements)")
-    for kind, vals in values.items():
-        if kind in ("R", "R_s", "R_p", "T", "T_s", "T_p") and (np.any(vals < -0.05) or np.any(vals > 1.05)):
-            j = int(np.argmax((vals < -0.05) | (vals > 1.05)))
-            _fail(path, lines_arr[j], f"{kind} = {vals[j]}: reflectance and transmittance are fractions in [0, 1] (percent? divide by 100)")
+    for kind in header:
+        stray = _out_of_range(kind, A[kind]) if kind in _RANGES else None
+        if stray is not None:
+            _fail(path, lines_arr[stray], f"column {header.index(kind) + 1} ({kind}) = {A[kind][stray]:g}: {_WHY[kind]}")
     if sigmas and set(sigmas) != set(values):
         missing = sorted(set(values) - set(sigmas))
         _fail(path, hline, f"sigma columns are given for some quantities but not for {missing}: give all or none")

@@ -525,6 +525,8 @@ def test_load_reflectance_errors_name_file_line_value(tmp_path):
         ("# only a comment\n", "is empty"),
         ("angle_deg,R\n", "no data rows"),
         ("angle,R\n10,0.04\n", r"missing required column 'angle_deg'.*did you mean angle_deg"),
+        ("angle_deg;R\n10;0.04\n", r"line 1: columns are separated by commas; this header, 'angle_deg;R', separates them by semicolons"),
+        ("angle_deg\tR\n10\t0.04\n", r"line 1: columns are separated by commas; .* separates them by tabs"),
         ("angle_deg,R\n10,0.04\n20\n", r"line 3: 1 fields, but the header \(line 1\) has 2"),
         ("angle_deg,R\n10,0.04\n20,abc\n", r"line 3: column 2 \(R\): 'abc' is not a number"),
         ("angle_deg,R\n10,nan\n", r"line 2: column 2 \(R\): 'nan' is not finite"),

@@ -294,7 +294,13 @@ def test_mueller_and_ncs_columns(tmp_path):
     ("wavelength_nm,angle_deg,psi_deg\n500,70,30\n600,70,nan\n", r"line 3: column 3 \(psi_deg\) is NaN; rows with missing values are rejected"),
     ("wavelength_nm,angle_deg,psi_deg\n500,70,30\n600,70,x\n", r"line 3: column 3 \(psi_deg\): 'x' is not a number"),
     ("wavelength_nm,angle,psi_deg\n500,70,30\n", r"line 1: column 2 'angle' is not a known column \(did you mean angle_deg\?\)"),
-    ("wavelength_nm,angle_deg,R\n500,70,45\n", r"line 2: R = 45.0: reflectance and transmittance are fractions"),
+    ("wavelength_nm,angle_deg,R\n500,70,45\n", r"line 2: column 3 \(R\) = 45: reflectance and transmittance are fractions"),
+    ("wavelength_nm,angle_deg,psi_deg,delta_deg\n500,70,30,120\n600,70,120,30\n",
+     r"line 3: column 3 \(psi_deg\) = 120: Psi lies in \[0, 90\] degrees \(Delta in the psi column\?\)"),
+    ("wavelength_nm,angle_deg,N,C,S\n500,70,0.5,0.6,-1.2\n", r"line 2: column 5 \(S\) = -1.2: N, C and S are cos 2Psi"),
+    ("wavelength_nm,angle_deg,m12,m33,m34\n500,70,-0.5,0.6,1.4\n",
+     r"line 2: column 5 \(m34\) = 1.4: the elements of a Mueller matrix normalized by m11 lie in \[-1, 1\]"),
+    ("wavelength_nm;angle_deg;psi_deg\n500;70;30\n", r"line 1: columns are separated by commas; .* separates them by semicolons"),
     ("wavelength_nm,angle_deg,psi_deg\n500,95,30\n", r"line 2: column 2 \(angle_deg\) = 95.0: must be in \[0, 90\)"),
     ("wavelength_nm,angle_deg,psi_deg,sigma_psi_deg\n500,70,30,0\n", r"line 2: sigma of psi_deg = 0.0: must be positive"),
     ("# comment\nwavelength_nm,angle_deg,psi_deg\n500,70\n", r"line 3: 2 cells, the header has 3"),
@@ -310,6 +316,24 @@ def test_bad_spectra_files_name_line_and_column(tmp_path, text, message):
     p.write_text(text)
     with pytest.raises(ValueError, match=r"bad.csv, " + message if message.startswith("line") else message):
         jo.load_spectra(p)
+
+
+def test_values_out_of_range_by_noise_are_kept_beyond_it_refused(tmp_path):
+    """Measured values may stray outside their quantity's range by noise (5% of its width: Psi
+    -0.3 degrees, R 1.02, N -1.04); beyond that a file or `make_spectra` is refused, naming the
+    quantity and the point."""
+    p = tmp_path / "noisy.csv"
+    p.write_text("wavelength_nm,angle_deg,psi_deg,R,N\n500,70,-0.3,1.02,-1.04\n600,70,90.2,-0.01,1.0\n")
+    sp = jo.load_spectra(p)
+    got = dict(zip(sp.kinds, sp.values.tolist()))
+    assert got == {"psi_deg": [-0.3, 90.2], "R": [1.02, -0.01], "N": [-1.04, 1.0]}
+    jo.make_spectra([500, 600], 70, {"psi_deg": [-0.3, 90.2], "C": [1.04, -1.04]})
+    with pytest.raises(ValueError, match=r"^R = 1.2 at point 1: reflectance and transmittance are fractions in \[0, 1\]"):
+        jo.make_spectra([500, 600], 70, {"R": [0.3, 1.2]})
+    with pytest.raises(ValueError, match=r"^N = -1.3 at point 1 of spectrum 1: N, C and S are"):
+        jo.make_spectra([500, 600], 70, {"N": [[0.3, 0.2], [0.1, -1.3]]})
+    with pytest.raises(ValueError, match=r"^psi_deg = 95 at point 0: Psi lies in \[0, 90\] degrees"):
+        jo.make_spectra([500], 70, {"psi_deg": [95.0]})
 
 
 # ---- the model file and the command line -------------------------------------------------------
