@@ -24,7 +24,8 @@ The method, per spectrum:
    the grid's points for the spectra Gauss-Newton did not fit, in a second compiled call that is
    made (and compiled) only when there are such spectra.
    Bounds are kept by the usual change of variables (`x = lo + (hi - lo)(1 + sin u)/2` for two
-   bounds, `lo - 1 + sqrt(u^2 + 1)` for one, as MINUIT and lmfit do). The spectra of a map are
+   bounds, `lo - 1 + sqrt(u^2 + 1)` for one, as MINUIT and lmfit do); starts on a bound are
+   moved inside it (`_Bound.inside`), where the slope of the change is not zero. The spectra of a map are
    solved by a pool of lanes that take the next spectrum as soon as theirs has converged
    (`jaxoptics._pool`), and the Jacobian is formed with as few passes through the stack as the
    model allows (`_jacobian_plan`).
@@ -153,10 +154,29 @@ class StackFit:
 # ---- bounds: x(u) and its inverse -------------------------------------------------------------
 
 
+# how far inside its bounds every start is moved, as a fraction of their width (`_Bound.inside`)
+_INSIDE = 1e-3
+
+
 @dataclasses.dataclass(frozen=True)
 class _Bound:
     lo: float
     hi: float
+
+    def inside(self, v, frac=_INSIDE):
+        """`v` moved inside the bounds by `frac` of their width (of `max(1, |bound|)` where one
+        is infinite) if it lies closer to one. A start on a bound is a stationary point of the
+        change of variables (`dx/du = 0`): the solvers would never move that parameter and would
+        report the point as converged though the data pull it inside."""
+        lo, hi = self.lo, self.hi
+        if math.isfinite(lo) and math.isfinite(hi):
+            eps = frac * (hi - lo)
+            return min(max(v, lo + eps), hi - eps)
+        if math.isfinite(lo):
+            return max(v, lo + frac * max(1.0, abs(lo)))
+        if math.isfinite(hi):
+            return min(v, hi - frac * max(1.0, abs(hi)))
+        return v
 
     def x(self, u):
         lo, hi = self.lo, self.hi
@@ -317,7 +337,7 @@ def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global
     is_delta = np.asarray([k == "delta_deg" for k in kinds])
     has_delta = bool(is_delta.any())
     bounds = [_Bound(f.lower, f.upper) for f in free]
-    x0 = np.asarray([f.value for f in free], np.float64)
+    x0 = np.asarray([b.inside(f.value) for f, b in zip(free, bounds)], np.float64)
 
     def model_x(x, wl, ang):
         """The model's quantities, quantity after quantity."""

@@ -213,6 +213,26 @@ def test_undetermined_parameters_are_reported_not_guessed():
     assert float(fit.stderr[g]) > 1e6
 
 
+@pytest.mark.parametrize("k_start", [jo.Free(0.0, 0.0, 1.0), jo.Free(0.0, 0.0)], ids=["bounded", "one-sided"])
+def test_a_start_on_a_bound_is_fitted(k_start):
+    """`k = Free(0, 0, ...)`, the usual way to say "start transparent, k >= 0", starts on a bound,
+    where the change of variables that keeps the bound has zero slope: the fit must still move
+    `k` and recover an absorbing film (n = 2.0 + 0.05i, 80 nm on Si; tmm's psi/delta with noise)."""
+    wl, ang = grid()
+    psi, delta, _, _ = tmm_quantities(np.full(wl.shape, 2.0 + 0.05j), 80.0, wl, ang)
+    rng = np.random.default_rng(7)
+    sig = (0.02, 0.05)
+    sp = jo.make_spectra(wl, ang, {"psi_deg": psi + sig[0] * rng.normal(size=psi.shape),
+                                   "delta_deg": delta + sig[1] * rng.normal(size=psi.shape)},
+                         sigma={"psi_deg": np.full(psi.shape, sig[0]), "delta_deg": np.full(psi.shape, sig[1])})
+    model = jo.Sample([jo.Layer(jo.Constant(n=jo.Free(1.9, 1.5, 2.5), k=k_start), jo.Free(70.0, 0.0, 500.0), name="f")],
+                      jo.material("Si"))
+    fit = jo.fit_stack(model, sp)
+    assert bool(fit.converged) and float(fit.chi2_reduced) < 1.5
+    for name, truth in (("f.n", 2.0), ("f.k", 0.05), ("f.thickness_nm", 80.0)):
+        assert abs(float(fit[name]) - truth) < 4 * float(fit.stderr_of(name)), (name, float(fit[name]), float(fit.stderr_of(name)))
+
+
 def test_mixed_quantities_without_sigma():
     """R and psi/delta together, no sigma in the data: the scale comes from the residuals."""
     wl, ang = grid()
