@@ -57,9 +57,10 @@ import numpy as np
 
 from . import _cache
 from ._compile import known_options, wanted_options
-from ._dispersion import Free, parameter_leaves
+from ._dispersion import Constant, Free, Tabulated, parameter_leaves
 from ._fresnel import materialize
 from ._result import result, static
+from ._rii import RIIFormula
 from ._sample import Sample, model_quantities
 from ._spectra import Spectra
 from ._stack import stack
@@ -214,6 +215,34 @@ def _check_ranges(sample: Sample, spectra: Spectra):
         if tab and rng is not None and (lam_um.min() < rng[0] - 1e-12 or lam_um.max() > rng[1] + 1e-12):
             raise ValueError(f"{owner}: the material's tabulated data cover {rng[0] * 1000:g}-{rng[1] * 1000:g} nm, "
                              f"the spectra {lam_um.min() * 1000:g}-{lam_um.max() * 1000:g} nm; tabulated data are not extrapolated")
+    # every measured or constant medium's index at the data's wavelengths is one the stack takes:
+    # finite, n > 0, k >= 0 (a database table or formula can give NaN beyond a k table, or gain)
+    wl = np.unique(np.asarray(spectra.wavelength_nm))
+    for owner, model in sample._slots():
+        N = _data_index(model, wl / 1000)
+        if N is None:
+            continue
+        bad = ~np.isfinite(N) | (N.real <= 0) | (N.imag < -1e-12 * np.abs(N))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(f"{owner}: its index at {wl[i]:g} nm is {complex(N[i]):.6g}; the stack takes finite "
+                             "indices n + ik with n > 0 and k >= 0 (absorption)")
+
+
+def _data_index(model, lam_um):
+    """The index of a constant, tabulated or refractiveindex.info medium at `lam_um`, in NumPy
+    (checked before compiling at no cost in JAX dispatch), or None for the other models."""
+    value = lambda v: v.value if isinstance(v, Free) else v
+    if isinstance(model, Constant):
+        return np.full(lam_um.shape, complex(value(model.n), value(model.k)))
+    interp = lambda tab: np.interp(lam_um, tab[0], tab[1], left=np.nan, right=np.nan)
+    k = np.zeros(lam_um.shape) if getattr(model, "k_table", None) is None else interp(model.k_table)
+    if isinstance(model, Tabulated):
+        return interp(model.n_table) + 1j * k
+    if isinstance(model, RIIFormula):
+        kind, v = model._n2_or_n(lam_um)
+        return (np.sqrt(v + 0j) if kind == "n2" else v + 0j) + 1j * k
+    return None
 
 
 def _grid_subset(wl_nm, n_max, d_max):
@@ -254,7 +283,9 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     **Returns:** a `StackFit`.
 
     Raises `ValueError` before compiling when the sample has no free parameter, a tabulated
-    material does not cover the data's wavelengths, or there are fewer data than parameters.
+    material does not cover the data's wavelengths, a constant, tabulated or refractiveindex.info
+    medium's index at a measured wavelength is not finite or has `n <= 0` or `k < 0`, or there
+    are fewer data than parameters.
     """
     if not isinstance(sample, Sample):
         raise ValueError(f"sample must be a Sample, got {type(sample).__name__}")

@@ -247,7 +247,7 @@ def test_mixed_quantities_without_sigma():
     assert "oxide.thickness_nm" in fit.table()
 
 
-def test_bad_input_is_refused_before_compiling():
+def test_bad_input_is_refused_before_compiling(tmp_path):
     sp = _spectra(np.array([100.0]), seed=0)
     fixed = jo.Sample([jo.Layer(jo.Cauchy(**OXIDE), 100.0)], jo.material("Si"))
     with pytest.raises(ValueError, match="no Free parameter"):
@@ -261,6 +261,22 @@ def test_bad_input_is_refused_before_compiling():
         jo.Layer(1.5, jo.Free(-1.0))
     with pytest.raises(ValueError, match="k < 0"):
         jo.Sample([], 1.5 - 0.1j)
+    # a constant, tabulated or database medium whose index at a measured wavelength the stack
+    # cannot take, named with the value: gain in a constant, in a table, in a formula's k table,
+    # and a formula's n^2 < 0 (1 + 0.16/(0.16 - 0.2) = -3 at 400 nm)
+    sp3 = jo.make_spectra([400.0, 600.0], 70.0, {"psi_deg": [20.0, 25.0], "delta_deg": [100.0, 120.0]})
+    yml = tmp_path / "m.yml"
+    yml.write_text("DATA:\n  - type: formula 2\n    wavelength_range: 0.3 2.0\n    coefficients: 0 1.0 0.01\n"
+                   "  - type: tabulated k\n    data: |\n        0.3 1e-3\n        0.7 -1e-3\n")
+    pole = tmp_path / "p.yml"
+    pole.write_text("DATA:\n  - type: formula 2\n    wavelength_range: 0.3 2.0\n    coefficients: 0 1.0 0.2\n")
+    for mat, message in ((jo.Constant(n=1.5, k=-0.1), r"film: its index at 400 nm is 1.5-0.1j; the stack takes finite"),
+                         (jo.Tabulated(n_table=([0.3, 0.7], [1.5, 1.5]), k_table=([0.3, 0.7], [0.01, -0.01])),
+                          r"film: its index at 600 nm is 1.5-0.005j"),
+                         (jo.load_rii_yaml(yml), r"film: its index at 600 nm is 1.42428-0.0005j"),
+                         (jo.load_rii_yaml(pole), r"film: its index at 400 nm is 0\+1.73205j")):
+        with pytest.raises(ValueError, match=message):
+            jo.fit_stack(jo.Sample([jo.Layer(mat, jo.Free(100.0, 0.0, 500.0), name="film")], 3.9), sp3)
 
 
 # ---- spectra files ----------------------------------------------------------------------------
