@@ -282,8 +282,14 @@ def _fit_stack(args) -> int:
                     cells += [repr(float(x)) for k in range(len(fit.names)) for x in (vals[s, k], sds[s, k])]
                     f.write(",".join(cells + [repr(float(chi[s])), str(bool(conv[s]))]) + "\n")
             print(f"per-site results written to {args.out}")
+    poor = not bool(np.all(np.asarray(fit.converged))) or float(np.max(np.asarray(fit.chi2_reduced))) > 4
     if not bool(np.all(np.asarray(fit.converged))):
         print("warning: some fits did not converge", file=sys.stderr)
+    unbounded = [f.name for f in sample.free() if f.is_thickness and not np.isfinite(f.upper)]
+    if poor and unbounded:
+        print(f"note: {', '.join(unbounded)} {'has' if len(unbounded) == 1 else 'have'} no upper bound, so no search over "
+              "fringes was made: a fit started a fringe away ends in a wrong minimum; give the thickness a max in the model file",
+              file=sys.stderr)
     if args.plot:
         import matplotlib
 

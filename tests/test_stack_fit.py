@@ -3,6 +3,7 @@ tmm-generated spectra with noise, calibrated standard errors, honest reports of 
 not determine, and the spectra files."""
 
 import math
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -382,7 +383,7 @@ def test_cli_fit_stack_example(capsys, tmp_path):
 
     png = tmp_path / "fs.png"
     assert main(["fit-stack", "--example", "--plot", str(png), "--no-cache"]) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
     rows = {l.split()[0]: l.split()[1:3] for l in out.splitlines() if l.startswith("oxide.")}
     d, sd = (float(x) for x in rows["oxide.thickness_nm"])
     assert abs(d - 512.4) < 4 * sd
@@ -391,6 +392,22 @@ def test_cli_fit_stack_example(capsys, tmp_path):
     chi = float(out.split("chi2_reduced ")[1].split(";")[0])
     assert 0.8 < chi < 1.2
     assert png.stat().st_size > 20000
+    assert "no upper bound" not in err
+
+
+def test_cli_fit_stack_names_an_unbounded_thickness_of_a_poor_fit(capsys, tmp_path):
+    """The example's model without the thickness's max: no search over fringes, so the fit from
+    100 nm ends a fringe away from the 512.4 nm film; the command says why."""
+    from jaxoptics.__main__ import main
+
+    data = Path(jo.__file__).parent / "data"
+    toml = tmp_path / "nomax.toml"
+    toml.write_text((data / "example_sio2_si.toml").read_text().replace("{ value = 100, min = 0, max = 2000 }", "{ value = 100, min = 0 }"))
+    main(["fit-stack", str(data / "example_sio2_si.csv"), "--model", str(toml), "--no-cache"])
+    out, err = capsys.readouterr()
+    d = float(next(l.split()[1] for l in out.splitlines() if l.startswith("oxide.thickness_nm")))
+    assert abs(d - 512.4) > 50
+    assert "note: oxide.thickness_nm has no upper bound, so no search over fringes was made" in err
 
 
 def test_cli_fit_stack_map(tmp_path, capsys):
