@@ -126,6 +126,8 @@ def _table(text, cols, path, entry):
             rows.append([float(p) for p in parts])
         except ValueError:
             raise ValueError(f"{path}: DATA entry {entry}, data row {j}: not a number in {line.strip()!r}") from None
+    if len(rows) < 2:
+        raise ValueError(f"{path}: DATA entry {entry} has fewer than two rows")
     a = np.asarray(rows, np.float64)
     a = a[np.argsort(a[:, 0], kind="stable")]
     # rows at one wavelength (where the database joins two data sets, or repeats a row) become one

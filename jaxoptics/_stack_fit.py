@@ -25,8 +25,8 @@ The method, per spectrum:
    made (and compiled) only when there are such spectra.
    Bounds are kept by the usual change of variables (`x = lo + (hi - lo)(1 + sin u)/2` for two
    bounds, `lo - 1 + sqrt(u^2 + 1)` for one, as MINUIT and lmfit do); starts on a bound are
-   moved inside it (`_Bound.inside`), where the slope of the change is not zero. The spectra of a map are
-   solved by a pool of lanes that take the next spectrum as soon as theirs has converged
+   moved inside it (`_Bound.inside`), where the slope of the change is not zero. The spectra
+   of a map are solved by a pool of lanes that take the next spectrum as soon as theirs has converged
    (`jaxoptics._pool`), and the Jacobian is formed with as few passes through the stack as the
    model allows (`_jacobian_plan`).
 3. **Uncertainties** from the Jacobian of the weighted residuals in the physical parameters at
@@ -215,7 +215,7 @@ def _check_ranges(sample: Sample, spectra: Spectra):
         if tab and rng is not None and (lam_um.min() < rng[0] - 1e-12 or lam_um.max() > rng[1] + 1e-12):
             raise ValueError(f"{owner}: the material's tabulated data cover {rng[0] * 1000:g}-{rng[1] * 1000:g} nm, "
                              f"the spectra {lam_um.min() * 1000:g}-{lam_um.max() * 1000:g} nm; tabulated data are not extrapolated")
-    # every measured or constant medium's index at the data's wavelengths is one the stack takes:
+    # every constant or tabulated medium's index at the data's wavelengths is one the stack takes:
     # finite, n > 0, k >= 0 (a database table or formula can give NaN beyond a k table, or gain)
     wl = np.unique(np.asarray(spectra.wavelength_nm))
     for owner, model in sample._slots():

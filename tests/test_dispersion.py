@@ -167,6 +167,11 @@ def test_yaml_rows_at_one_wavelength_and_k_table_ranges(tmp_path):
                  "        0.5 1.7 0.3\n        0.6 1.8 0.2\n")
     N = np.asarray(jo.load_rii_yaml(p).nk(jnp.asarray([0.45, 0.5, 0.55])))
     np.testing.assert_allclose(N, [1.5 + 0.1j, 1.6 + 0.2j, 1.7 + 0.2j], rtol=1e-15)
+    for rows, message in (("", "fewer than two rows"), ("        0.5 1.5 0.1\n", "fewer than two rows"),
+                          ("        0.5 1.5 0.1\n        0.5 1.7 0.3\n", "fewer than two wavelengths")):
+        p.write_text("DATA:\n  - type: tabulated nk\n    data: |\n" + rows)
+        with pytest.raises(ValueError, match=f"dup.yml: DATA entry 1 has {message}"):
+            jo.load_rii_yaml(p)
     p.write_text("DATA:\n  - type: formula 2\n    wavelength_range: 0.3 2.0\n    coefficients: 0 1.0 0.01\n"
                  "  - type: tabulated k\n    data: |\n        0.5 1e-3\n        3.0 2e-3\n")
     m = jo.load_rii_yaml(p)
