@@ -262,16 +262,20 @@ def call(fn, name: str, args: tuple, *, static=None, options=None, fallback, pol
     leaves, in_tree = jax.tree_util.tree_flatten(args)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
         return fallback()
+    place = _placement(leaves)
+    if place is None:
+        return fallback()
     if _dir[0] is None:
-        return _shipped_or(fallback, name, static, args, leaves, options, poly)
+        return _shipped_or(fallback, name, static, args, leaves, options, poly, place)
     key = _key(name, static, args, options)
     if key is None:
         return fallback()
-    if key not in _in_process:
+    here = f"{key}|{place}"  # an executable runs on the devices it was compiled for
+    if here not in _in_process:
         if poly is not None:
             poly_key = _poly_key(name, static, poly)
             poly = None if poly_key is None else (poly_key, jax.tree_util.tree_leaves(poly[0]))
-        run, out_tree, loaded_from = _stored_or_compiled(fn, name, in_tree, leaves, key, options, poly=poly)
+        run, out_tree, loaded_from = _stored_or_compiled(fn, name, in_tree, leaves, key, place, options, poly=poly)
         if loaded_from is not None:
             # The first call of a loaded executable is waited for: one that loads but cannot run
             # (damaged, or written incomplete) is deleted, and the program compiled again.
@@ -280,25 +284,68 @@ def call(fn, name: str, args: tuple, *, static=None, options=None, fallback, pol
             except jax.errors.JaxRuntimeError as e:
                 _log.warning("jaxoptics: dropping stored executable %s, which failed to run (%s)", loaded_from.name, e)
                 loaded_from.unlink(missing_ok=True)
-                run, out_tree, _ = _stored_or_compiled(fn, name, in_tree, leaves, key, options, load=False, poly=poly)
+                run, out_tree, _ = _stored_or_compiled(fn, name, in_tree, leaves, key, place, options, load=False, poly=poly)
             else:
-                _in_process[key] = run, out_tree
+                _in_process[here] = run, out_tree
                 return jax.tree_util.tree_unflatten(out_tree, out)
-        _in_process[key] = run, out_tree
-    run, out_tree = _in_process[key]
+        _in_process[here] = run, out_tree
+    run, out_tree = _in_process[here]
     return jax.tree_util.tree_unflatten(out_tree, run(*leaves))
 
 
-def _shipped_or(fallback, name, static, args, leaves, options, poly):
+def _placement(leaves) -> str | None:
+    """Where the arrays among `leaves` live, which a compiled executable is tied to: one text per
+    array (its devices by platform and id, and for a sharded array its mesh and partition spec);
+    a NumPy array counts as living on JAX's default device, where a program compiled for it runs.
+    Nothing here assumes a device: the same call on another device, a GPU, or a sharded array
+    compiles (or loads) the program for that placement. None for a sharding without a stable
+    text (its repr holds an address): such a call is not stored."""
+    default = _default_device()
+    texts = set()
+    for x in leaves:
+        if isinstance(x, jax.Array):
+            texts.add(_sharding_text(x.sharding))
+        elif isinstance(x, (np.ndarray, np.generic)):
+            texts.add(default)
+    try:
+        return _checked(";".join(sorted(texts)))
+    except _Uncacheable:
+        return None
+
+
+def _default_device() -> str:
+    device = getattr(jax.config, "jax_default_device", None) or jax.devices()[0]
+    if isinstance(device, str):  # a platform name: its first device
+        device = jax.devices(device)[0]
+    return _device_text(device)
+
+
+def _device_text(d) -> str:
+    return f"{d.platform}:{d.id}"
+
+
+def _sharding_text(sh) -> str:
+    if isinstance(sh, jax.sharding.SingleDeviceSharding):
+        return _device_text(next(iter(sh.device_set)))
+    if isinstance(sh, jax.sharding.NamedSharding):
+        mesh = sh.mesh
+        devices = ",".join(_device_text(d) for d in np.asarray(mesh.devices).ravel())
+        return f"mesh({dict(zip(mesh.axis_names, mesh.devices.shape))} [{devices}]) {sh.spec} {sh.memory_kind}"
+    return repr(sh)
+
+
+def _shipped_or(fallback, name, static, args, leaves, options, poly, place):
     """Without the store: the program the package ships for all shapes of `poly` (see `call`),
-    compiled once in this process for these shapes (no tracing); `fallback()` where none is
-    shipped for this call (another form, other library versions, no `poly`)."""
+    compiled once in this process for these shapes and the devices the arguments live on
+    (`place`; no tracing); `fallback()` where none is shipped for this call (another form, other
+    library versions, no `poly`)."""
     if poly is None or _SHIPPED[0] is None:
         return fallback()
     key = _key(name, static, args, options)
     if key is None or key in _not_shipped:
         return fallback()
-    if key not in _in_process:
+    here = f"{key}|{place}"
+    if here not in _in_process:
         poly_key = _poly_key(name, static, poly)
         got = None if poly_key is None else _load_shipped(poly_key)
         if got is None:
@@ -308,8 +355,8 @@ def _shipped_or(fallback, name, static, args, leaves, options, poly):
 
         exported, out_tree = got
         compiled = _ExportedJit(exported, known_options(options)).lower(*leaves).compile()
-        _in_process[key] = compiled, out_tree
-    run, out_tree = _in_process[key]
+        _in_process[here] = compiled, out_tree
+    run, out_tree = _in_process[here]
     return jax.tree_util.tree_unflatten(out_tree, run(*leaves))
 
 
@@ -323,15 +370,16 @@ def _poly_key(name, static, poly) -> str | None:
     return _key(name, (static, "for all shapes", text), specs, None)
 
 
-def _stored_or_compiled(fn, name, in_tree, leaves, key, options, load=True, poly=None):
+def _stored_or_compiled(fn, name, in_tree, leaves, key, place, options, load=True, poly=None):
     """`(run, out_tree, loaded_from)` for the program of `key`: its executable loaded from the
     store (`loaded_from`: its file; unless not `load`); else its traced program loaded from the
     store and compiled (the one for these shapes, or, with `poly = (poly_key, spec_leaves)`, the
     one for all shapes of the specs); else `fn` traced and compiled here, once: for the specs'
     shapes where `poly` is given and that trace succeeds (the program is stored), else for these
     shapes (one trace and one lowering). What is compiled is stored as its executable, or, where
-    that cannot be serialized, as its traced program (`loaded_from` None)."""
-    exe_path = _dir[0] / (_executable_key(key) + _EXE_SUFFIX)
+    that cannot be serialized, as its traced program (`loaded_from` None). Executables are kept
+    per placement of the arguments (`place`, `_placement`); traced programs run anywhere."""
+    exe_path = _dir[0] / (_executable_key(key, place) + _EXE_SUFFIX)
     loaded = _load_executable(exe_path) if load else None
     if loaded is not None:
         return (*loaded, exe_path)
@@ -388,8 +436,8 @@ def _machine() -> str:
     return "|".join(parts)
 
 
-def _executable_key(key: str) -> str:
-    return hashlib.sha256(f"{key}|{_machine()}".encode()).hexdigest()
+def _executable_key(key: str, place: str) -> str:
+    return hashlib.sha256(f"{key}|{place}|{_machine()}".encode()).hexdigest()
 
 
 _jax_cache_hits = [0]

@@ -77,11 +77,17 @@ class DispersionFit:
     coefficient (huge for a coefficient the data do not determine, such as the split of `B`
     between two Sellmeier poles that merged); `covariance` of the coefficients over the
     combinations the data determine (the pseudo-inverse of the normal matrix, which leaves out
-    directions the data do not see at all; `index` propagates it, and where nothing is left out
-    `stderr` is the square root of its diagonal); `converged`; `residual_rms` of the reflectance;
+    the directions the data do not see at all: singular values of the column-scaled Jacobian at
+    or below `eps max(m, p)` of the largest, numpy's rank tolerance; `index` propagates it, so
+    the index's error is the same wherever along such a direction the fit stopped, and where
+    nothing is left out `stderr` is the square root of its diagonal); `converged`; `residual_rms` of the reflectance;
     `chi2_reduced`; `num_steps`; `condition_number` of `J^T J` in the parameters the fit moves, scaled to unit
     diagonal (large for Sellmeier fits, whose coefficients are strongly correlated: judge the fit
-    by `index(wavelength_um)` and its error, not by single coefficients).
+    by `index(wavelength_um)` and its error, not by single coefficients); `covariance_factor`, a
+    `(p, p)` matrix `F` with `covariance = F F^T` (a column per determined direction, zero
+    columns for those left out), through which `index` propagates: with condition numbers up to
+    `1e20`, `g^T (F F^T) g` formed from the matrix loses the variance to cancellation, while
+    `|F^T g|^2` keeps it.
 
     A Sellmeier pole that starts beyond the longest measured wavelength is fitted through
     `(B/C, 1/C)`, in which a pole at infinity (the term `-B/C lambda^2`) is an ordinary point.
@@ -101,16 +107,18 @@ class DispersionFit:
     chi2_reduced: jax.Array
     num_steps: jax.Array
     condition_number: jax.Array
+    covariance_factor: jax.Array
 
     def index(self, wavelength_um):
         """`(n, stderr)` at `wavelength_um`: the fitted law and its standard error, propagated from
-        the coefficients' covariance to first order (the delta method)."""
+        the coefficients' covariance to first order (the delta method, through
+        `covariance_factor`)."""
         lam = jnp.asarray(wavelength_um, self.coefficients.dtype)
         f = lambda p, l: _index(self.model, p, l, self.terms)
         n = f(self.coefficients, lam)
         g = jax.vmap(jax.grad(f), in_axes=(None, 0))(self.coefficients, lam.reshape(-1))
-        var = jnp.einsum("ip,pq,iq->i", g, self.covariance, g).reshape(lam.shape)
-        return n, jnp.sqrt(jnp.maximum(var, 0))
+        var = jnp.sum((g @ self.covariance_factor) ** 2, axis=-1).reshape(lam.shape)
+        return n, jnp.sqrt(var)
 
 
 def _initial(model, terms, lam, n):
@@ -125,51 +133,82 @@ def _initial(model, terms, lam, n):
     return jnp.concatenate([B, C])
 
 
-@eqx.filter_jit
-def _solve(theta, lam, R, w, eta1, p0, *, model, terms, polarization, solver, max_steps, sigma_given):
+def _residual_fn(theta, lam, R, w, eta1, far, *, model, terms, polarization):
+    """`q -> r`: the weighted residuals of the law with fitted parameters `q` (see `_reciprocal`)."""
     cos_i = materialize(jnp.cos(theta))  # once, not in every loop over the residuals (see `_fit_batch`)
 
-    far = _far_poles(model, terms, p0, lam)
-
-    def residual(q, _):
+    def residual(q, _=None):
         n = _internal_index(model, q, lam, terms, far)
         return ((_model(cos_i[None, :], eta1, n[:, None], polarization) - R) * w).ravel()
 
-    sol = optx.least_squares(residual, solver, _reciprocal(model, terms, p0, far), max_steps=max_steps, throw=False)
-    q = sol.value
-    r = residual(q, None)
-    J = jax.jacfwd(residual)(q, None)
-    JTJ = J.T @ J
-    # Scale the normal matrix to unit diagonal before inverting (the coefficients differ by orders
-    # of magnitude). Two inverses: the pseudo-inverse leaves out the directions the data do not see
-    # at all (eigenvalues at rounding level: two Sellmeier poles that merged, whose B split any
-    # way); it is the covariance of the combinations the data determine, which `index` propagates
-    # (the index does not move along a left-out direction, and keeping one would let rounding in
-    # its gradient, times an unbounded variance, swamp the error). The standard errors come from
-    # the inverse with nothing left out (eigenvalues floored at eps^2 of the largest, as in
-    # `fit_stack`): a coefficient the data do not determine gets a huge error, never a small one.
-    d = jnp.sqrt(jnp.diagonal(JTJ))
+    return residual
+
+
+def _covariances(J):
+    """`(factor, cov_all, cond)` of the fitted parameters from the Jacobian `J` (`(m, p)`) of the
+    weighted residuals, at unit variance scale.
+
+    `J` is scaled to unit column norms (the coefficients differ by orders of magnitude) and
+    decomposed by its singular values `s` (not through `J^T J`, which would square the condition
+    number and leave directions below `sqrt(eps)` to rounding). Directions with
+    `s <= eps max(m, p) s_max` (the rank tolerance of `numpy.linalg.matrix_rank` and `lstsq`) are
+    those the data do not see at all: two Sellmeier poles that merged, whose `B` split any way.
+    Along such a direction neither the residuals nor any quantity the law determines (the index
+    at a wavelength) move, to first order, and its computed singular value and the gradients'
+    component along it are both rounding. `cov`, which `DispersionFit.index` propagates, leaves
+    these directions out (it is `factor factor^T`, `factor` a column per direction kept): the
+    index error is then the same wherever along them the solve stopped, and the same eagerly and
+    under `jit`. Every direction above the tolerance is kept,
+    however weakly determined: its share of a determined quantity's variance (its leverage) does
+    not shrink with its singular value, so no threshold above rounding could drop it without
+    changing that variance. `cov_all` leaves nothing out (singular values floored at
+    `eps s_max`), for the coefficients' own standard errors: a coefficient the data do not
+    determine gets a huge error, never a small one. `cond` is the condition number of the scaled
+    `J^T J`."""
+    m, p = J.shape
+    d = jnp.linalg.norm(J, axis=0)
     d = jnp.where(d > 0, d, 1)
-    S = JTJ / (d[:, None] * d[None, :])
-    ev, vec = jnp.linalg.eigh(S)
-    eps, top = jnp.finfo(S.dtype).eps, jnp.maximum(ev[-1], jnp.finfo(S.dtype).tiny)
-    cond = ev[-1] / jnp.maximum(ev[0], jnp.finfo(S.dtype).tiny)
-    seen = ev > eps * S.shape[0] * top
-    dd = d[:, None] * d[None, :]
-    cov = (vec * jnp.where(seen, 1 / jnp.where(seen, ev, 1), 0)[None, :]) @ vec.T / dd
-    cov_all = (vec / jnp.maximum(ev, eps**2 * top)[None, :]) @ vec.T / dd
+    _, s, vt = jnp.linalg.svd(J / d[None, :], full_matrices=False)
+    eps, tiny = jnp.finfo(J.dtype).eps, jnp.finfo(J.dtype).tiny
+    top = jnp.maximum(s[0], tiny)
+    seen = s > eps * max(m, p) * top
+    v = vt.T / d[:, None]  # back to the unscaled parameters
+    factor = v * jnp.where(seen, 1 / jnp.where(seen, s, 1), 0)[None, :]
+    cov_all = (v / jnp.maximum(s, eps * top)[None, :] ** 2) @ v.T
+    cond = (top / jnp.maximum(s[-1], tiny)) ** 2
+    return factor, cov_all, cond
+
+
+def _estimate(residual, q, far, *, model, terms, sigma_given):
+    """What `fit_dispersion` reports at the fitted parameters `q`: the coefficients `(B, C)`, their
+    covariance over the determined directions with its factor, and standard errors
+    (`_covariances`, scaled as in `fit_eta`: by the reduced chi-square, at least 1 with `sigma`),
+    the residuals, the reduced chi-square and the condition number."""
+    r = residual(q)
+    J = jax.jacfwd(residual)(q)
+    factor, cov_all, cond = _covariances(J)
     dof = r.shape[0] - q.shape[0]
     chi2 = jnp.sum(r * r) / dof
-    scale = jnp.maximum(chi2, 1) if sigma_given else chi2  # as in fit_eta
-    ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(jnp.diagonal(cov)))
+    scale = jnp.maximum(chi2, 1) if sigma_given else chi2
     # report (B, C): the covariances carried over to first order, which leaves the delta-method
     # error of `DispersionFit.index` what it is in the fitted parameters
     p = _reciprocal(model, terms, q, far)
     T = jax.jacfwd(_reciprocal, argnums=2)(model, terms, q, far)
-    cov = scale * (T @ cov @ T.T)
+    factor = jnp.sqrt(scale) * (T @ factor)
     se = jnp.sqrt(scale * jnp.abs(jnp.diagonal(T @ cov_all @ T.T)))
+    return p, factor @ factor.T, factor, se, r, chi2, cond
+
+
+@eqx.filter_jit
+def _solve(theta, lam, R, w, eta1, p0, *, model, terms, polarization, solver, max_steps, sigma_given):
+    far = _far_poles(model, terms, p0, lam)
+    residual = _residual_fn(theta, lam, R, w, eta1, far, model=model, terms=terms, polarization=polarization)
+    sol = optx.least_squares(residual, solver, _reciprocal(model, terms, p0, far), max_steps=max_steps, throw=False)
+    q = sol.value
+    p, cov, factor, se, r, chi2, cond = _estimate(residual, q, far, model=model, terms=terms, sigma_given=sigma_given)
+    ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(jnp.diagonal(cov)))
     rms = jnp.sqrt(jnp.mean((r / w.ravel()) ** 2))
-    return p, cov, se, ok, rms, chi2, sol.stats["num_steps"], cond
+    return p, cov, se, ok, rms, chi2, sol.stats["num_steps"], cond, factor
 
 
 def fit_dispersion(wavelength_um: Float[ArrayLike, " w"], theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "w m"], *,
@@ -237,7 +276,7 @@ def fit_dispersion(wavelength_um: Float[ArrayLike, " w"], theta: Float[ArrayLike
             raise ValueError(f"init must have {n_par} coefficients for {model} with {terms} terms, got shape {p0.shape}")
     tol = _tol(dt)
     solver = optx.LevenbergMarquardt(rtol=tol, atol=tol) if solver is None else solver
-    p, cov, se, ok, rms, chi2, steps, cond = _solve(
+    p, cov, se, ok, rms, chi2, steps, cond, factor = _solve(
         theta, lam, R, w, jnp.asarray(eta1, dt), p0, model=model, terms=terms, polarization=polarization,
         solver=solver, max_steps=int(max_steps), sigma_given=sigma is not None)
-    return DispersionFit(model, terms, p, cov, se, ok, rms, chi2, steps, cond)
+    return DispersionFit(model, terms, p, cov, se, ok, rms, chi2, steps, cond, factor)

@@ -52,7 +52,8 @@ Out-of-domain values
 --------------------
 Nothing raises inside ``jit``. An element with a non-finite ``cos_i``, or an index that is not
 finite and positive (for complex ``eta2``: real part > 0 and imaginary part >= 0), gives NaN in
-every output. ``|cos_i|`` slightly above one (rounding in a dot product) is not clamped: the
+every output. A complex ``eta2`` whose ``k`` lies below zero by at most ``1e-12 |eta2|`` is
+rounding and is taken as ``k = 0``, as in `stack`. ``|cos_i|`` slightly above one (rounding in a dot product) is not clamped: the
 formulas extend smoothly and stay finite.
 
 References: B. de Greve, *Reflections and Refractions in Ray Tracing* (2006); E. Hecht, *Optics*,
@@ -268,7 +269,7 @@ def _prepare(cos_i, eta1, eta2, *, allow_complex: bool) -> tuple[jax.Array, jax.
     dt = V.float_dtype(cos_i, eta1, eta2)
     cos_i = jnp.broadcast_to(jnp.asarray(cos_i, dt), shape)
     eta1 = jnp.broadcast_to(jnp.asarray(eta1, dt), shape)
-    eta2 = jnp.asarray(eta2, V.complex_dtype(dt) if V.is_complex(eta2) else dt)
+    eta2 = V.without_rounding_k(jnp.asarray(eta2, V.complex_dtype(dt) if V.is_complex(eta2) else dt))
     return cos_i, eta1, jnp.broadcast_to(eta2, shape)
 
 

@@ -9,8 +9,10 @@ utilities as an `equinox.Module` (which is itself such a dataclass). The kernels
 import equinox: loading it costs 0.2-0.3 s, more than twice what `import jaxoptics` adds to JAX
 itself, which a program calling only the kernels does not need.
 
-The kernels' results also unpack in field order, as in `t, tir = refract(...)` and
-`psi, delta = ellipsometry(...)`.
+The kernels' results (`Unpacks`) also behave as the tuples of their fields in field order, as
+`NamedTuple`s do: they unpack (`t, tir = refract(...)`, `psi, delta = ellipsometry(...)`), index
+and slice (`refract(...)[0]`, `stack(...)[:2]`), have a length, and stack
+(`jnp.stack(ellipsometry(...))`).
 """
 
 from __future__ import annotations
@@ -42,7 +44,17 @@ def result(cls: type[T]) -> type[T]:
 
 
 class Unpacks:
-    """Base of the kernels' results: unpacking in field order."""
+    """Base of the kernels' results: the tuple of the fields in field order, for unpacking,
+    indexing, slicing and `len` (as a `NamedTuple`; the fields keep their names too)."""
+
+    def _astuple(self) -> tuple:
+        return tuple(getattr(self, f.name) for f in dataclasses.fields(self))  # type: ignore[arg-type]
 
     def __iter__(self) -> Iterator[Any]:
-        return (getattr(self, f.name) for f in dataclasses.fields(self))  # type: ignore[arg-type]
+        return iter(self._astuple())
+
+    def __len__(self) -> int:
+        return len(dataclasses.fields(self))  # type: ignore[arg-type]
+
+    def __getitem__(self, index):
+        return self._astuple()[index]

@@ -5,7 +5,9 @@ Conventions
 * A stack of ``L`` media: ``n[..., 0]`` is the (real) medium the light comes from, ``n[..., -1]``
   the medium it leaves into (real or absorbing), ``n[..., 1:-1]`` the inner layers, of thickness
   ``d[..., :]`` in the same unit as the vacuum ``wavelength``. Indices are ``n + ik`` with
-  ``k >= 0`` absorbing, time dependence ``exp(-i omega t)``, as in `fresnel` and tmm.
+  ``k >= 0`` absorbing, time dependence ``exp(-i omega t)``, as in `fresnel` and tmm. A ``k``
+  below zero by at most ``1e-12 |n|`` (rounding, as interpolated tables give near ``k = 0``) is
+  taken as ``k = 0``; further below, it is gain, which the kernel refuses.
 * ``cos_i`` is the cosine of the angle of incidence in medium 0 (its sign is ignored).
 * Amplitudes use the sign convention of `fresnel_amplitudes` (Hecht's, the one tmm uses):
   ``r_p = -r_s`` at normal incidence; ``t_s``, ``t_p`` are ratios of the transmitted to the
@@ -721,8 +723,9 @@ def _check_concrete(n, d, wavelength, cos_i):
     first_bad(wavelength, lambda x: ~(np.isfinite(x) & (x > 0)), "wavelengths must be finite and > 0", "wavelength")
     first_bad(cos_i, lambda x: ~(np.isfinite(x) & (np.abs(x) <= 1 + 1e-6)), "cos_i must be finite and within [-1, 1]",
               "cos_i")
-    first_bad(n, lambda x: ~(np.isfinite(x) & (np.real(x) > 0) & (np.imag(x) >= 0)),
-              "indices must be finite with real part > 0 and imaginary part k >= 0", "n")
+    first_bad(n, lambda x: ~(np.isfinite(x) & (np.real(x) > 0)) | V.is_gain(x),
+              f"indices must be finite with real part > 0 and imaginary part k >= 0 (a k below 0 by at most "
+              f"{V.K_ROUNDING:g} |n| is rounding, taken as 0)", "n")
     first_bad(n, lambda x: np.imag(x[..., :1]) != 0, "the incident medium n[..., 0] must be real", "n")
 
 
@@ -754,7 +757,7 @@ def _prepare(n, d, wavelength, cos_i, incoherent):
         x = jnp.asarray(x, dtype)
         return x.reshape((1,) * (len(batch) + core - x.ndim) + x.shape)
 
-    n, d = pad(n, cdt, 1), pad(d, dt, 1)
+    n, d = V.without_rounding_k(pad(n, cdt, 1)), pad(d, dt, 1)
     wavelength, cos_i = pad(wavelength, dt, 0), pad(cos_i, dt, 0)
     return n, d, wavelength, cos_i, tuple(sorted(int(j) + 1 for j in inc)), dt, batch
 

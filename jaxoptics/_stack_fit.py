@@ -56,6 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _cache
+from . import _validate as V
 from ._compile import known_options, wanted_options
 from ._dispersion import Constant, Free, Tabulated, parameter_leaves
 from ._fresnel import materialize
@@ -222,7 +223,7 @@ def _check_ranges(sample: Sample, spectra: Spectra):
         N = _data_index(model, wl / 1000)
         if N is None:
             continue
-        bad = ~np.isfinite(N) | (N.real <= 0) | (N.imag < -1e-12 * np.abs(N))
+        bad = ~np.isfinite(N) | (N.real <= 0) | V.is_gain(N)
         if bad.any():
             i = int(np.argmax(bad))
             raise ValueError(f"{owner}: its index at {wl[i]:g} nm is {complex(N[i]):.6g}; the stack takes finite "
@@ -284,7 +285,8 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
 
     Raises `ValueError` before compiling when the sample has no free parameter, a tabulated
     material does not cover the data's wavelengths, a constant, tabulated or refractiveindex.info
-    medium's index at a measured wavelength is not finite or has `n <= 0` or `k < 0`, or there
+    medium's index at a measured wavelength is not finite or has `n <= 0` or `k < 0` (below zero
+    by more than `1e-12 |N|`, the rounding tolerance `stack` shares), or there
     are fewer data than parameters.
     """
     if not isinstance(sample, Sample):

@@ -59,6 +59,29 @@ def as_index(x, name: str, *, allow_complex: bool):
     return as_real(x, name)
 
 
+# An index `N = n + ik` whose `k` lies below zero by at most this fraction of `|N|` is taken as
+# `k = 0`: that is rounding (interpolating a k table near zero gives k = -1e-39), not gain. Every
+# kernel that takes a complex index (`stack`, the Fresnel kernels) and `fit_stack`'s check of its
+# media use this one tolerance; a `k` further below zero is gain, which they refuse (concrete
+# input) or give NaN for (traced).
+K_ROUNDING = 1e-12
+
+
+def is_gain(N):
+    """Whether `N` (NumPy or JAX, real or complex) has `k < -K_ROUNDING |N|`: gain, not rounding."""
+    xp = jnp if isinstance(N, jax.Array) else np
+    return xp.imag(N) < -K_ROUNDING * xp.abs(N)
+
+
+def without_rounding_k(N):
+    """`N` with a `k` within rounding below zero (`K_ROUNDING`) set to 0; unchanged elsewhere,
+    gain included (the kernels' validity mask then flags it). Real `N` is returned as it is."""
+    if not jnp.iscomplexobj(N):
+        return N
+    k = jnp.imag(N)
+    return jnp.where((k < 0) & ~is_gain(N), jax.lax.complex(jnp.real(N), jnp.zeros_like(k)), N)
+
+
 def is_complex(*xs) -> bool:
     return any(
         isinstance(x, complex) or (hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.complexfloating))

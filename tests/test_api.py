@@ -176,8 +176,8 @@ def test_one_kind_of_result_container():
     swapped = dataclasses.replace(res, R_s=res.R_p)
     np.testing.assert_array_equal(swapped.R_s, res.R_p)
     # static fields are structure, not leaves: a fit returns from jit with its names
-    leaves, tree = jax.tree.flatten(jo.DispersionFit("cauchy", 2, *[jnp.zeros(2)] * 8))
-    assert len(leaves) == 8 and jax.tree.unflatten(tree, leaves).model == "cauchy"
+    leaves, tree = jax.tree.flatten(jo.DispersionFit("cauchy", 2, *[jnp.zeros(2)] * 9))
+    assert len(leaves) == 9 and jax.tree.unflatten(tree, leaves).model == "cauchy"
     # kernels' results unpack in field order, like `t, tir = refract(...)`
     psi, delta = jo.ellipsometry(jnp.array([1.0, 1.46, 3.9]), jnp.array([100.0]), 600.0, 0.8)
     e = jo.ellipsometry(jnp.array([1.0, 1.46, 3.9]), jnp.array([100.0]), 600.0, 0.8)

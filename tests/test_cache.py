@@ -274,16 +274,20 @@ def test_a_planted_file_runs_nothing(tmp_path, caplog):
     assert not path.exists()
 
 
-def test_executable_key_names_the_machine(monkeypatch):
-    """A stored executable is machine code for the host's processor: its key adds the backend and
-    the processor's model and instruction-set extensions to the program's key."""
+def test_executable_key_names_the_machine_and_the_devices(monkeypatch):
+    """A stored executable is machine code for the host's processor and the devices its inputs
+    lived on: its key adds the backend, the processor's model and instruction-set extensions and
+    the arguments' placement to the program's key."""
     key = "0" * 64
-    here = _cache._executable_key(key)
-    assert here != _cache._executable_key("1" * 64)
+    here = _cache._executable_key(key, "cpu:0")
+    assert here != _cache._executable_key("1" * 64, "cpu:0")
+    assert here != _cache._executable_key(key, "cpu:1")
     if os.path.exists("/proc/cpuinfo"):
         assert "flags" in _cache._machine() or "Features" in _cache._machine()  # x86, Arm
     monkeypatch.setattr(_cache, "_machine", lambda: "another processor")
-    assert _cache._executable_key(key) != here
+    assert _cache._executable_key(key, "cpu:0") != here
+    # a NumPy array and a JAX array on the default device are the same placement
+    assert _cache._placement([np.ones(2), jnp.ones(2), 3.0]) == _cache._placement([np.ones(2)]) == "cpu:0"
 
 
 _NO_SHIPPED = "from jaxoptics import _cache; _cache._SHIPPED[0] = None  # this process traces what the store misses\n"

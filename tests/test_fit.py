@@ -476,6 +476,58 @@ def test_dispersion_fit_gives_undetermined_coefficients_huge_errors():
     assert merged >= 2
 
 
+def test_dispersion_index_error_is_the_same_along_an_undetermined_direction():
+    """Two Sellmeier poles at one wavelength (C_1 = C_2) make a 3-term law that is exactly a 2-term
+    law with B_1 + B_2: any split of B fits the same. Moving the solution along that split by hand
+    must not change the index's standard error at any wavelength, and that error must be the
+    2-term law's (its covariance (J^T J)^-1 has full rank: the textbook delta method in NumPy),
+    while the errors of B_1 and B_2 themselves are huge."""
+    from jaxoptics._dispersion_fit import DispersionFit, _estimate, _far_poles, _reciprocal, _residual_fn
+
+    lam = np.array([0.365, 0.405, 0.436, 0.486, 0.546, 0.633, 0.706, 0.852, 1.014, 1.33, 1.55])
+    theta = np.deg2rad(np.linspace(0, 85, 30))
+    B, C, B3, C3 = 0.6961663 + 0.4079426, 0.0068, 0.8974794, 97.934  # silica's two UV poles merged
+    two = np.array([B, B3, C, C3])
+    n_true = np.sqrt(1 + B * lam**2 / (lam**2 - C) + B3 * lam**2 / (lam**2 - C3))
+    R = np.stack([tmm_curve(1.0, float(n), theta, "unpolarized") for n in n_true])
+    w = jnp.full(R.shape, 1e3)  # sigma = 1e-3; noise-free data, so the variance scale is 1
+    lam_check = np.linspace(0.3, 1.7, 15)
+
+    def index_error(p, terms):
+        p = jnp.asarray(p)
+        far = _far_poles("sellmeier", terms, p, jnp.asarray(lam))
+        res = _residual_fn(jnp.asarray(theta), jnp.asarray(lam), jnp.asarray(R), w, 1.0, far, model="sellmeier",
+                           terms=terms, polarization="unpolarized")
+        q = _reciprocal("sellmeier", terms, p, far)
+        got = _estimate(res, q, far, model="sellmeier", terms=terms, sigma_given=True)
+        fit = DispersionFit("sellmeier", terms, got[0], got[1], got[3], True, 0.0, got[5], 0, got[6], got[2])
+        return np.asarray(fit.index(lam_check)[1]), np.asarray(fit.stderr)
+
+    # the 2-term oracle: J in (B, C) by forward differences of the model's residuals, (J^T J)^-1
+    def residuals_two(p):
+        n = np.sqrt(1 + p[0] * lam**2 / (lam**2 - p[2]) + p[1] * lam**2 / (lam**2 - p[3]))
+        return (np.stack([tmm_curve(1.0, float(x), theta, "unpolarized") for x in n]) - R).ravel() * 1e3
+
+    h = 1e-6 * np.maximum(np.abs(two), 1e-3)
+    J = np.stack([(residuals_two(two + h[k] * np.eye(4)[k]) - residuals_two(two - h[k] * np.eye(4)[k])) / (2 * h[k])
+                  for k in range(4)], 1)
+    cov2 = np.linalg.inv(J.T @ J)
+    g = lambda l: np.array([l**2 / (l**2 - C), l**2 / (l**2 - C3), B * l**2 / (l**2 - C) ** 2,  # noqa: E731
+                            B3 * l**2 / (l**2 - C3) ** 2]) / (2 * np.sqrt(1 + B * l**2 / (l**2 - C) + B3 * l**2 / (l**2 - C3)))
+    want = np.array([np.sqrt(g(l) @ cov2 @ g(l)) for l in lam_check])
+    for split in (0.5, 0.1, 0.9, -2.0):
+        se_n, se_coef = index_error([split * B, (1 - split) * B, B3, C, C, C3], 3)
+        np.testing.assert_allclose(se_n, want, rtol=1e-5, err_msg=f"B split {split}")
+        assert np.all(se_coef[:2] > 1e3 * B), (split, se_coef)
+    np.testing.assert_allclose(index_error(two, 2)[0], want, rtol=1e-5)
+    # Poles split by a little (where a solve stops near the merge): the direction that separates
+    # them is determined, weakly (singular values ~1e-9 to 1e-7 of the largest), and its share of
+    # the index variance does not depend on how weakly; the error is the same for every split.
+    near = [index_error([0.5 * B, 0.5 * B, B3, C * (1 + e), C * (1 - e), C3], 3)[0] for e in (1e-7, 1e-6, 1e-5, 1e-4)]
+    for e, se_n in zip((1e-6, 1e-5, 1e-4), near[1:]):
+        np.testing.assert_allclose(se_n, near[0], rtol=1e-4, err_msg=f"poles split by {e}")
+
+
 def test_plot_dispersion_fit_draws_the_law_and_the_residuals():
     """`plot_dispersion_fit`: the fitted Cauchy law (its closed form from the coefficients) over the
     measured range, at each measured wavelength, and tmm's reflectance of the law's index minus the
