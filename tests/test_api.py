@@ -154,6 +154,25 @@ def test_results_are_named_and_unpack():
     np.testing.assert_allclose(float(a.R_p), float(R_p), rtol=1e-14)
 
 
+def test_kernel_results_index_like_tuples():
+    """The kernels' results are sequences of their fields in field order, as the tuples they
+    unpack as: indexing (negative too), slicing, len, and jnp.stack / np.asarray over them."""
+    res = jo.refract(jnp.array([0.6, 0.0, -0.8]), jnp.array([0.0, 0.0, 1.0]), 1.0, 1.5)
+    assert len(res) == 2 and res[0] is res.t and res[1] is res.tir and res[-1] is res.tir
+    assert res[:1] == (res.t,) and tuple(res) == (res.t, res.tir)
+    with pytest.raises(IndexError):
+        res[2]
+    e = jo.ellipsometry(jnp.array([1.0, 1.46, 3.9]), jnp.array([100.0]), 600.0, 0.8)
+    np.testing.assert_array_equal(jnp.stack(e), [e.psi, e.delta])
+    np.testing.assert_array_equal(np.asarray(e), [e.psi, e.delta])
+    s = jo.stack(jnp.array([1.0, 1.46, 3.9]), jnp.array([100.0]), 600.0, 0.8)
+    assert len(s) == 11 and s[0] is s.R_s and s[-1] is s.rp_rs and s[6:8] == (s.r_s, s.r_p)
+    a = jo.fresnel_amplitudes(0.5, 1.0, 1.5)
+    assert [x is y for x, y in zip(a[::-1], (a.t_p, a.t_s, a.r_p, a.r_s))] == [True] * 4
+    for name in ("Interaction", "Hit"):
+        assert issubclass(getattr(jo, name), jo.Refraction.__mro__[1]), name  # the same tuple-like base
+
+
 RESULT_TYPES = ["Refraction", "FresnelAmplitudes", "Interaction", "Hit", "StackResult", "Ellipsometry",
                 "FitResult", "DispersionFit", "StackFit"]
 

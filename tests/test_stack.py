@@ -614,6 +614,24 @@ def test_bad_input_raises_before_tracing(kwargs, match):
         jo.stack(args["n"], args["d"], args["wavelength"], args["cos_i"], incoherent=inc)
 
 
+def test_negative_k_within_rounding_is_zero_and_gain_is_refused():
+    """A k below zero by at most 1e-12 |n| (interpolating a k table near zero gives -1e-39) is
+    rounding: taken as k = 0, eagerly and under jit, in stack and fresnel alike (tmm as oracle). A
+    k further below zero is gain: refused before tracing, NaN inside jit."""
+    n0 = np.array([1.0, 2.2046 + 0j, 3.8 + 0.01j])
+    want = tmm.coh_tmm("s", list(n0), [np.inf, 100.0, np.inf], np.arccos(0.8), 500.0)["R"]
+    for k in (-9.99e-40, -1e-15, -2.2e-12):
+        n = n0 + np.array([0, 1j * k, 0])
+        for f in (jo.stack, jax.jit(jo.stack)):
+            np.testing.assert_allclose(float(f(n, np.array([100.0]), 500.0, 0.8).R_s), want, rtol=1e-12, atol=0)
+        assert float(jo.fresnel(0.8, 1.0, 2.2046 + 1j * k)) == float(jo.fresnel(0.8, 1.0, 2.2046 + 0j))
+    gain = n0 + np.array([0, -3e-12j, 0])
+    with pytest.raises(ValueError, match=r"n\[1\] = \(2\.2046-3e-12j\).*at most 1e-12 \|n\| is rounding"):
+        jo.stack(gain, np.array([100.0]), 500.0, 0.8)
+    assert np.isnan(float(jax.jit(jo.stack)(gain, np.array([100.0]), 500.0, 0.8).R_s))
+    assert np.isnan(float(jo.fresnel(0.8, 1.0, 2.2046 - 3e-12j)))
+
+
 def test_out_of_domain_inside_jit_is_nan():
     f = jax.jit(jo.stack)
     n = np.array([[1.0, 1.5, 2.0], [1.0, 1.5, -2.0], [1.0, 1.5 - 0.1j, 2.0], [1.0 + 0.1j, 1.5, 2.0]])
