@@ -28,7 +28,7 @@ def _use_compilation_cache(args) -> None:
     command was given `--no-cache` or `JAXOPTICS_CACHE_DIR=off`."""
     if getattr(args, "no_cache", False):
         return
-    from ._cache import enable_cache
+    from ._runtime._cache import enable_cache
 
     enable_cache()
 
@@ -95,7 +95,7 @@ def _fit(args) -> int:
           f"errors {'from the sigma column' if data.sigma is not None else 'scaled by the residual scatter'}")
     head = f"{'wavelength_um':>13} {'pol':>11} {'points':>6} {'eta':>24} {'stderr':>22} {'converged':>9} {'rms resid':>10} {'chi2/dof':>9} {'steps':>5}"
     print(head)
-    from jaxoptics._fit import check_curves
+    from jaxoptics._fitting._index import check_curves
 
     for c in curves:  # each curve's data checked on its own, so that an error names its lines
         try:
@@ -159,7 +159,7 @@ def _law_refused(curves, args) -> str | None:
     wavelengths, all on the same angles), or None."""
     import numpy as np
 
-    from ._dispersion_fit import _SELLMEIER_POLES, DEFAULT_TERMS
+    from ._fitting._dispersion_fit import _SELLMEIER_POLES, DEFAULT_TERMS
 
     if args.absorbing:
         return "fits a real index law; leave out --absorbing"
@@ -296,14 +296,14 @@ def _fit_stack(args) -> int:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        from ._plot import plot_stack_fit
+        from ._fitting._plot import plot_stack_fit
 
         fig = plot_stack_fit(sample, spectra, fit, title=f"fit-stack: {data_path.name}")
         fig.savefig(args.plot, dpi=120)
         plt.close(fig)
         print(f"plot saved to {args.plot}" + (f" (site {spectra.sites[0] if spectra.sites else 0})" if spectra.batch_shape else ""))
         if spectra.batch_shape:
-            from ._plot import plot_stack_map
+            from ._fitting._plot import plot_stack_map
 
             out = Path(args.plot)
             out = out.with_name(out.stem + "_map" + (out.suffix or ".png"))
@@ -320,7 +320,7 @@ def _plot_fits(fits, args, title):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ._plot import _draw_index_fit, _finish_index_figure
+    from ._fitting._plot import _draw_index_fit, _finish_index_figure
 
     fig, (ax, axr) = plt.subplots(2, 1, figsize=(7.5, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1.3]})
     for k, (c, r) in enumerate(fits):

@@ -56,7 +56,7 @@ def test_single_output_kernels_compile_to_one_loop():
     import jax.numpy as jnp
 
     import jaxoptics as jo
-    from jaxoptics.tools.bench import _fusions
+    from jaxoptics.tools.bench_kernels import _fusions
 
     if jax.default_backend() != "cpu":
         return

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 import jaxoptics as jo
-from jaxoptics import _cache, _stack_fit
+from jaxoptics._fitting import _stack_fit
+from jaxoptics._runtime import _cache
 
 
 @pytest.fixture(autouse=True)
@@ -69,7 +70,7 @@ def test_fit_eta_stored_loaded_and_repaired(tmp_path, monkeypatch, caplog):
             loaded = fit()
         exe.write_bytes(b"not an executable")
         _cache._in_process.clear()
-        with caplog.at_level(logging.WARNING, logger="jaxoptics._cache"):
+        with caplog.at_level(logging.WARNING, logger="jaxoptics._runtime._cache"):
             rebuilt = fit()  # dropped, traced and compiled again, stored again
         assert "unreadable stored executable" in caplog.text
         assert exe.read_bytes() != b"not an executable"
@@ -93,7 +94,7 @@ def test_fit_eta_stored_loaded_and_repaired(tmp_path, monkeypatch, caplog):
         path.write_bytes(b"not a stored program")
         _cache._in_process.clear()
         caplog.clear()
-        with monkeypatch.context() as m, caplog.at_level(logging.WARNING, logger="jaxoptics._cache"):
+        with monkeypatch.context() as m, caplog.at_level(logging.WARNING, logger="jaxoptics._runtime._cache"):
             m.setattr(serialize_executable, "serialize", _no_serialization)
             repaired = fit()
         assert "unreadable stored program" in caplog.text
@@ -131,7 +132,7 @@ def test_new_numbers_of_angles_and_curves_compile_the_stored_program_without_tra
             traces = _count_traces(m)
             got = fit(*size)
         m_angles = theta[::size[0]].size
-        assert traces == ([] if m_angles >= 16 else ["jaxoptics._fit_followups._first"]), (size, traces)
+        assert traces == ([] if m_angles >= 16 else ["jaxoptics._fitting._index_stages._first"]), (size, traces)
         _assert_same(expected, got)
         assert np.asarray(got.converged).all()
     assert list(store.glob("*.jaxexport")) == [stored]  # 14 angles: its executable only
@@ -231,7 +232,7 @@ def test_prune_keeps_the_most_recently_used(tmp_path, monkeypatch):
 
 
 def test_compiler_options_xla_does_not_know_are_left_out(monkeypatch, tmp_path):
-    from jaxoptics import _compile
+    from jaxoptics._runtime import _options as _compile
 
     bogus = {"xla_no_such_option_for_jaxoptics": True}
     monkeypatch.setattr(_compile, "QUICK_COMPILE", {**_compile.QUICK_COMPILE, **bogus})
@@ -268,7 +269,7 @@ def test_a_planted_file_runs_nothing(tmp_path, caplog):
 
     path = tmp_path / ("0" * 64 + _cache._SUFFIX)
     path.write_bytes(pickle.dumps((b"", _Planted())))
-    with caplog.at_level(logging.WARNING, logger="jaxoptics._cache"):
+    with caplog.at_level(logging.WARNING, logger="jaxoptics._runtime._cache"):
         assert _cache._load(path) is None
     assert "is not part of a stored program" in caplog.text
     assert not path.exists()
@@ -290,7 +291,7 @@ def test_executable_key_names_the_machine_and_the_devices(monkeypatch):
     assert _cache._placement([np.ones(2), jnp.ones(2), 3.0]) == _cache._placement([np.ones(2)]) == "cpu:0"
 
 
-_NO_SHIPPED = "from jaxoptics import _cache; _cache._SHIPPED[0] = None  # this process traces what the store misses\n"
+_NO_SHIPPED = "from jaxoptics._runtime import _cache; _cache._SHIPPED[0] = None  # this process traces what the store misses\n"
 _WARM = _NO_SHIPPED + """
 import sys, numpy as np, jax
 jax.config.update("jax_enable_x64", True)
@@ -298,7 +299,7 @@ import jaxoptics as jo
 jo.enable_cache(path=sys.argv[1])
 c = jo.load_reflectance(jo.example_path()).curves()[0]
 r = jo.fit_eta(c.theta, c.R, polarization=c.polarization)
-probed = jo._compile._known.cache_info().currsize > 0  # XLA asked which compiler options it knows
+probed = jo._runtime._options._known.cache_info().currsize > 0  # XLA asked which compiler options it knows
 print(float(r.eta), bool(r.converged), *(m in sys.modules for m in ("optimistix", "equinox", "lineax")), probed)
 """
 
@@ -355,7 +356,7 @@ def test_stored_executable_that_fails_to_run_is_dropped_and_compiled_again(tmp_p
     assert first.returncode == 0, first.stderr[-2000:]
     for f in tmp_path.glob("*" + _cache._EXE_SUFFIX):
         f.unlink()
-    unwatched = "from jaxoptics import _cache; _cache._listening.append(True)\n" + _WARM
+    unwatched = "from jaxoptics._runtime import _cache; _cache._listening.append(True)\n" + _WARM
     assert run(unwatched).returncode == 0
     assert list(tmp_path.glob("*" + _cache._EXE_SUFFIX))  # written from JAX's cache hit: incomplete
     mended = run()
@@ -378,7 +379,7 @@ q = np.asarray(truth.quantities(("psi_deg", "delta_deg"), jnp.asarray(wl), jnp.f
 sp = jo.make_spectra(wl, 70.0, {"psi_deg": q[0], "delta_deg": q[1]})
 model = jo.Sample([jo.Layer(1.46, jo.Free(100.0, 0.0, 600.0), name="film")], jo.material("Si"))
 print(repr(float(jo.fit_stack(model, sp)["film.thickness_nm"])), len(list(__import__("pathlib").Path(sys.argv[1]).glob("*.xlaexec"))))
-print(*(m in sys.modules for m in ("optimistix", "equinox", "lineax")), jo._compile._known.cache_info().currsize > 0)
+print(*(m in sys.modules for m in ("optimistix", "equinox", "lineax")), jo._runtime._options._known.cache_info().currsize > 0)
 """
 
 
@@ -415,7 +416,7 @@ def test_shipped_programs_are_those_of_the_source():
 
 _SHIPPED_RUN = """
 import sys, jax
-from jaxoptics import _cache
+from jaxoptics._runtime import _cache
 if sys.argv[2] == "off":
     _cache._SHIPPED[0] = None
 from jaxoptics.__main__ import main
@@ -455,7 +456,7 @@ def test_first_command_line_fit_compiles_a_shipped_program_without_tracing(tmp_p
 
 _SHIPPED_NO_STORE = """
 import sys
-from jaxoptics import _cache
+from jaxoptics._runtime import _cache
 if sys.argv[2] == "off":
     _cache._SHIPPED[0] = None
 from jaxoptics.__main__ import main

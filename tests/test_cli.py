@@ -26,7 +26,7 @@ def test_import_loads_only_what_the_kernels_need():
 
 
 def _shipped_programs_apply() -> bool:
-    from jaxoptics import _cache
+    from jaxoptics._runtime import _cache
     from jaxoptics.tools import make_programs
 
     manifest = make_programs.read_manifest()

@@ -108,7 +108,7 @@ def test_tauc_lorentz_gradients_are_finite_at_the_gap():
 
 
 def test_free_parameters_are_listed_and_substituted():
-    from jaxoptics._dispersion import parameter_leaves, substitute
+    from jaxoptics._films._dispersion import parameter_leaves, substitute
 
     m = jo.DrudeLorentz(eps_inf=jo.Free(1.0, 0.5, 5), drude=((jo.Free(9.0, 1, 20), 0.07),), lorentz=((1.5, jo.Free(2.5), 0.6),))
     names = [n for n, leaf in parameter_leaves(m) if isinstance(leaf, jo.Free)]

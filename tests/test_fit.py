@@ -228,7 +228,7 @@ def test_small_angle_range_branch_ambiguity_is_reported(degrees):
 def test_large_batch_in_blocks_matches_single_fits():
     """Batches larger than a block (about 2^17 points) are fitted block by block inside the one
     compiled call, the last block padded: every curve still gets its own fit."""
-    from jaxoptics._fit_solver import _BLOCK_POINTS
+    from jaxoptics._fitting._index_solver import _BLOCK_POINTS
 
     B = 2 * (_BLOCK_POINTS // THETA.size) + 7  # three blocks, the last one padded
     etas = jnp.linspace(1.05, 3.5, B)
@@ -482,7 +482,7 @@ def test_dispersion_index_error_is_the_same_along_an_undetermined_direction():
     must not change the index's standard error at any wavelength, and that error must be the
     2-term law's (its covariance (J^T J)^-1 has full rank: the textbook delta method in NumPy),
     while the errors of B_1 and B_2 themselves are huge."""
-    from jaxoptics._dispersion_fit import DispersionFit, _estimate, _far_poles, _reciprocal, _residual_fn
+    from jaxoptics._fitting._dispersion_fit import DispersionFit, _estimate, _far_poles, _reciprocal, _residual_fn
 
     lam = np.array([0.365, 0.405, 0.436, 0.486, 0.546, 0.633, 0.706, 0.852, 1.014, 1.33, 1.55])
     theta = np.deg2rad(np.linspace(0, 85, 30))
@@ -756,7 +756,7 @@ def test_one_column_solver_matches_lineax_least_squares():
 def test_first_argmin_matches_numpy_argmin():
     """The start's argmin (two plain reductions instead of XLA's (value, index) reduction) agrees
     with NumPy's: first index of the minimum, ties included; NaN never chosen; all-NaN rows 0."""
-    from jaxoptics._fit_starts import _first_argmin
+    from jaxoptics._fitting._index_starts import _first_argmin
 
     rng = np.random.default_rng(5)
     x = rng.normal(size=(200, 48))
@@ -775,7 +775,7 @@ def test_fit_jacobian_column_matches_mpmath(pol):
     incidence, and 0 under TIR; relative 1e-9 (the Jacobian sets the step and the errors)."""
     import mpmath as mp
 
-    from jaxoptics._fit_model import _model, _reflectance_d_eta2
+    from jaxoptics._fitting._index_model import _model, _reflectance_d_eta2
     from jaxoptics.tools.mpref import fresnel_ref, mpf
 
     key = {"unpolarized": None, "s": "R_s", "p": "R_p"}[pol]
@@ -809,7 +809,7 @@ def test_fit_model_is_accurate_in_absolute_terms(pol):
     and normal incidence, Brewster's angle, eta1 == eta2 and large contrasts both ways. Points
     within 1e-9 (in k_t^2) of the critical angle, where R has an infinite slope and both this and
     `fresnel` are limited by the rounding of the inputs, are left out."""
-    from jaxoptics._fit_model import _reflectance_plain
+    from jaxoptics._fitting._index_model import _reflectance_plain
     from jaxoptics.tools.mpref import fresnel_ref, mpf
 
     c = np.concatenate([[0.0, 1e-12, 1e-6, 1.0], np.cos(np.linspace(0, np.pi / 2, 41)[1:-1])])
@@ -833,7 +833,7 @@ def test_complex_fit_model_and_jacobian_match_mpmath(pol):
     Jacobian) against the 50-digit reflectance and mpmath.diff: absolute 1e-14, relative 1e-9."""
     import mpmath as mp
 
-    from jaxoptics._fit_model import _model
+    from jaxoptics._fitting._index_model import _model
     from jaxoptics.tools.mpref import fresnel_ref, mpf
 
     def R_ref(c, a, n, k):
@@ -897,7 +897,7 @@ def test_plot_fit_chooses_curves_and_refuses_bad_arguments():
     R = np.asarray(jo.synthetic_reflectance(jax.random.PRNGKey(4), jnp.linspace(1.3, 2.0, 12), THETA, noise=1e-3))
     fit = jo.fit_eta(THETA, R)
     fig = jo.plot_fit(THETA, R, fit)  # more curves than it draws by default: the first ten, and it says so
-    assert len(fig.axes[0].containers) == jo._plot.MAX_CURVES and "(curves 0-9 of 12)" in fig.axes[0].get_title()
+    assert len(fig.axes[0].containers) == jo._fitting._plot.MAX_CURVES and "(curves 0-9 of 12)" in fig.axes[0].get_title()
     plt.close(fig)
     fig = jo.plot_fit(THETA, R, fit, which=[11, 3])
     xd, yd = fig.axes[0].containers[0].lines[0].get_data()

@@ -140,7 +140,7 @@ def test_cosine_of_incidence_within_half_an_ulp(dtype):
     incidence), for unit, unnormalized and scaled vectors."""
     from mpmath import mp
 
-    from jaxoptics._refract import _signed_cos
+    from jaxoptics._interface._refract import _signed_cos
 
     rng = np.random.default_rng(7)
     N = 600

@@ -684,7 +684,7 @@ def test_large_batches_in_blocks_agree_with_tmm(monkeypatch, inc):
     thicknesses vary per sample and wavelength and angle per point (inputs broadcast on different
     axes) agrees with tmm point by point, and its gradients equal those of the batch in one
     block."""
-    import jaxoptics._stack as S
+    import jaxoptics._films._stack as S
 
     rng = np.random.default_rng(11)
     Sn, W, L = 5, 9, 5
@@ -729,7 +729,7 @@ def test_layer_entries_against_mpmath(dtype):
     g = exp(-Im delta)) against mpmath: within 4 ulps of their modulus for decays from 0 to 100
     nepers and phases from 1e-12 to 1e6 radians (1e4 in float32), at multiples of pi/2, and for
     |delta| down to 1e-30; and exactly real where delta is real or imaginary (lossless layers)."""
-    from jaxoptics._stack import _layer_cs
+    from jaxoptics._films._layers import _layer_cs
 
     rng = np.random.default_rng(3)
     K = 3000
@@ -864,7 +864,7 @@ def test_vectorized_atan2_against_mpmath(dtype):
     atan2 over every octant and 20 decades of magnitude, at the ends of its reduction (|y/x| at
     tan(pi/8) and 1), on the axes with signed zeros as `np.arctan2`, NaN for non-finite input;
     its derivative is the closed form."""
-    from jaxoptics._stack import _atan2
+    from jaxoptics._films._elementary import _atan2
 
     jax.config.update("jax_enable_x64", True)
     rng = np.random.default_rng(9)

@@ -151,7 +151,8 @@ def test_levenberg_marquardt_stage_runs_only_when_needed(monkeypatch):
     """Gauss-Newton fits these spectra, and the Levenberg-Marquardt stage is not called. With
     Gauss-Newton cut to one step it fits none: the second stage then fits every spectrum, to the
     same minimum (tmm-generated data, the same noise draw)."""
-    from jaxoptics import _cache, _stack_fit
+    from jaxoptics._fitting import _stack_fit, _stack_fit_stages
+    from jaxoptics._runtime import _cache
 
     d_true = np.array([80.0, 520.0, 1600.0])
     sp = _spectra(d_true, seed=3)
@@ -164,16 +165,16 @@ def test_levenberg_marquardt_stage_runs_only_when_needed(monkeypatch):
 
     monkeypatch.setattr(_cache, "call", spy)
     ref = jo.fit_stack(_model(), sp)
-    assert called == ["_first_stage", "_errors_stage"]
-    assert np.all(np.asarray(ref.converged)) and np.all(np.asarray(ref.num_steps) <= _stack_fit._GN_STEPS)
+    assert called == ["first_stage", "errors_stage"]
+    assert np.all(np.asarray(ref.converged)) and np.all(np.asarray(ref.num_steps) <= _stack_fit_stages._GN_STEPS)
     called.clear()
     _stack_fit._program.cache_clear()
-    monkeypatch.setattr(_stack_fit, "_GN_STEPS", 1)
+    monkeypatch.setattr(_stack_fit_stages, "_GN_STEPS", 1)
     try:
         lm = jo.fit_stack(_model(), sp)
     finally:
         _stack_fit._program.cache_clear()  # compiled with the patched step count
-    assert called == ["_first_stage", "_second_stage"]
+    assert called == ["first_stage", "second_stage"]
     assert np.all(np.asarray(lm.converged))
     assert np.all(np.asarray(lm.num_steps) > 1)  # Gauss-Newton's one step, then Levenberg-Marquardt's
     for fit in (ref, lm):  # standard errors from Gauss-Newton's last step; evaluated after Levenberg-Marquardt
@@ -458,7 +459,7 @@ def test_plot_draws_the_model_between_the_measurements():
     """`plot_stack_fit`'s curves (`_plot._curves`): the model between the measured points against
     tmm, through the model at each measured point, delta's line broken where it wraps (no segment
     spans more than 180 degrees), and angle scans drawn over angle."""
-    from jaxoptics._plot import _curves
+    from jaxoptics._fitting._plot import _curves
 
     wl, ang = grid()
     x = [1.452, 0.0036, 0.0, 480.0]  # the free parameters: A, B, C, thickness
@@ -660,7 +661,7 @@ def test_jacobian_through_the_stack_inputs_equals_jacfwd(case):
     parameters (split into the real and imaginary part of the index, or the real part alone where
     `k` is held at zero), media with one or two, thicknesses, an incoherent layer and every kind of
     quantity."""
-    from jaxoptics._stack_fit import _jacobian_plan, _model_and_jacobian
+    from jaxoptics._fitting._stack_jacobian import _jacobian_plan, _model_and_jacobian
 
     wl = np.linspace(300.0, 1000.0, 40)
     ang = np.radians(np.repeat([55.0, 70.0], 20))
@@ -714,7 +715,7 @@ def test_pooled_solves_equal_one_solve_per_problem():
     are left at their starts."""
     import optimistix as optx
 
-    from jaxoptics._pool import pooled_least_squares
+    from jaxoptics._fitting._pool import pooled_least_squares
 
     jax.config.update("jax_enable_x64", True)
     t = jnp.linspace(0, 4, 30)
@@ -752,7 +753,7 @@ def test_gauss_newton_edm_stop_ends_within_a_thousandth_of_a_standard_error():
     minimum's to within the EDM tolerance."""
     import optimistix as optx
 
-    from jaxoptics._pool import gauss_newton_edm_stop, pooled_least_squares
+    from jaxoptics._fitting._pool import gauss_newton_edm_stop, pooled_least_squares
 
     jax.config.update("jax_enable_x64", True)
     t = jnp.linspace(0, 4, 60)
@@ -792,7 +793,7 @@ def test_two_pass_gauss_newton_of_a_map_equals_one_pass(monkeypatch):
     first on the grid's subset of 45 of the 100 wavelengths): every film is recovered, and the
     values equal those of one pass over all the data (a small fit's program, forced here) to
     within 2e-3 of their standard errors, with the same standard errors."""
-    from jaxoptics import _stack_fit
+    from jaxoptics._fitting import _stack_fit, _stack_fit_stages
 
     d_true = np.linspace(5.0, 2000.0, 32)
     sp = _spectra(d_true, seed=6)
@@ -802,7 +803,7 @@ def test_two_pass_gauss_newton_of_a_map_equals_one_pass(monkeypatch):
     assert np.all(np.abs(d - d_true) < 4 * sd), (d - d_true) / sd
     _check_errors_at_the_values(two, _model(), sp)
     _stack_fit._program.cache_clear()
-    monkeypatch.setattr(_stack_fit, "_QUICK_COMPILE_RESIDUALS", 10**9)
+    monkeypatch.setattr(_stack_fit_stages, "_QUICK_COMPILE_RESIDUALS", 10**9)
     try:
         one = jo.fit_stack(_model(), sp)
     finally:
@@ -850,7 +851,7 @@ def test_float32_fit_recovers_the_films():
 def test_wrapped_delta_residuals():
     """Delta residuals are wrapped to the nearest multiple of 360 degrees: equal to NumPy's
     remainder (exact) within an ulp of the input, in [-180, 180]."""
-    from jaxoptics._stack_fit import _wrap_deg
+    from jaxoptics._fitting._stack_fit_stages import _wrap_deg
 
     jax.config.update("jax_enable_x64", True)
     rng = np.random.default_rng(4)

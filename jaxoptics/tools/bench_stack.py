@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from .bench import timeit
+from ._measure import timeit
 
 LAYERS = 10
 

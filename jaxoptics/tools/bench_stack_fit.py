@@ -169,7 +169,7 @@ def bench_stack_fit(*, quick=False, progress=None, repeats=None):
     # as fit_stack's lanes run them, for 16 blocks in one call: as in the fit, which evaluates
     # them in a loop inside one compiled call, the call's buffers are allocated once for many
     # evaluations (one call per block would time the allocation of its temporary arrays too)
-    from jaxoptics._stack_fit import _model_and_jacobian
+    from jaxoptics._fitting._stack_jacobian import _model_and_jacobian
 
     X = jnp.asarray(wafer(1024, seed=2)).reshape(16, 64, 4)
     kinds = ("psi_deg", "delta_deg")

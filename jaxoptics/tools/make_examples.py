@@ -13,8 +13,8 @@ import math
 
 import numpy as np
 
-from .._rii import material
-from .._spectra import Spectra, save_spectra
+from .._films._rii import material
+from .._io._spectra import Spectra, save_spectra
 
 D_NM = 512.4
 SIGMA = (0.02, 0.05)

@@ -1,6 +1,6 @@
 """Write the traced programs shipped with the package: `python -m jaxoptics.tools.make_programs`.
 
-They are the batched solve of `fit_eta` (`_fit_followups._first`), each traced once for every
+They are the batched solve of `fit_eta` (`_index_stages._first`), each traced once for every
 number of angles from 16 to 4096 and of curves up to 32 (`jax.export` with symbolic shapes), in
 each form the command line's `fit` calls it: float64; a real or a complex (`--absorbing`) index;
 with or without a sigma column; one polarization for all curves (s, p or unpolarized) or one per
@@ -68,7 +68,7 @@ def main(argv=None) -> int:
 
     jax.config.update("jax_enable_x64", True)  # as the command line does
     import jaxoptics as jo
-    from jaxoptics import _cache
+    from jaxoptics._runtime import _cache
 
     out = Path(args.out)
     todo = list(forms())

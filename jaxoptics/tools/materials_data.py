@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .._dispersion import Tabulated
-from .._rii import _BUILTIN_DIR, RIIFormula, _database_dir, load_rii_yaml
+from .._films._dispersion import Tabulated
+from .._films._rii import _BUILTIN_DIR, RIIFormula, _database_dir, load_rii_yaml
 
 # name: (refractiveindex.info page, wavelength window in micrometres for tabulated data)
 PAGES = {

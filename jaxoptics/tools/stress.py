@@ -451,7 +451,7 @@ def mitsuba_comparison(n=200_000, progress=None):
     """Mitsuba 3's float32 `fresnel` (LLVM backend) on the hardest inputs: eta = 1.000001 within
     1e-6 of the critical angle, and its automatic derivative under TIR near grazing incidence.
     Skipped with a note when Mitsuba is not installed or its LLVM backend cannot start."""
-    from .bench import _mitsuba
+    from ._measure import _mitsuba
 
     mi, dr = _mitsuba()
     if mi is None:
@@ -523,7 +523,7 @@ def run(*, n=1_000_000, out_dir="stress_out", mp_samples=2000, mitsuba=True, qui
     from tqdm.auto import tqdm
 
     jax.config.update("jax_enable_x64", True)
-    from .bench import machine_description, run_stamp
+    from ._measure import machine_description, run_stamp
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

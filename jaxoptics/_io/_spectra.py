@@ -1,0 +1,315 @@
+"""Spectroscopic data of layered samples: ellipsometry (psi/delta; N, C, S; Mueller matrix) and
+photometry (R, T), read from CSV with errors that name the file, line and column.
+
+Conventions of the measured columns (what ellipsometers export for isotropic samples):
+
+- `psi_deg`, `delta_deg`: the instrument's Psi and Delta in degrees, Azzam and Bashara's
+  convention (`rho = r_p / r_s = tan(Psi) exp(i Delta)`, index `N = n - ik`; a bare dielectric
+  below Brewster's angle has `Delta = 180`). Any range of Delta is accepted (`-180..180`,
+  `0..360`): residuals are wrapped.
+- `N`, `C`, `S`: `cos 2Psi`, `sin 2Psi cos Delta`, `sin 2Psi sin Delta`.
+- `m11` ... `m44`: the Mueller matrix normalized by `m11`; for an isotropic sample it is
+  `[[1, -N, 0, 0], [-N, 1, 0, 0], [0, 0, C, S], [0, 0, -S, C]]` (Fujiwara, *Spectroscopic
+  Ellipsometry*, sec. 3.4), and the fit uses `N = -(m12 + m21)/2`, `C = (m33 + m44)/2`,
+  `S = (m34 - m43)/2` (or the elements present).
+- `R`, `T` (unpolarized), `R_s`, `R_p`, `T_s`, `T_p`: fractions (0 to 1), not percent.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+
+from ._reflectance import _fail, _header_names
+
+if TYPE_CHECKING:
+    from jaxtyping import ArrayLike, Float
+
+KINDS = ("psi_deg", "delta_deg", "N", "C", "S", "R", "R_s", "R_p", "T", "T_s", "T_p")
+_MUELLER = tuple(f"m{i}{j}" for i in range(1, 5) for j in range(1, 5))
+_NEAR = {"psi": "psi_deg", "delta": "delta_deg", "wavelength": "wavelength_nm or wavelength_um", "lambda": "wavelength_nm",
+         "angle": "angle_deg", "theta": "angle_deg", "aoi": "angle_deg", "rs": "R_s", "rp": "R_p", "ts": "T_s", "tp": "T_p",
+         "wavelength_a": "wavelength_nm", "energy_ev": "wavelength_nm (energies are not read; convert to nm)"}
+
+
+# The range each measured quantity lies in. Measured values may stray outside it by noise, up to 5%
+# of its width; beyond that they are refused as a mix-up of units or columns, with the reason.
+_RANGES = {"psi_deg": (0.0, 90.0), **dict.fromkeys(("N", "C", "S"), (-1.0, 1.0)),
+           **dict.fromkeys(("R", "R_s", "R_p", "T", "T_s", "T_p"), (0.0, 1.0)), **dict.fromkeys(_MUELLER, (-1.0, 1.0))}
+_WHY = {"psi_deg": "Psi lies in [0, 90] degrees (Delta in the psi column?)",
+        **dict.fromkeys(("N", "C", "S"), "N, C and S are cos 2Psi, sin 2Psi cos Delta and sin 2Psi sin Delta, in [-1, 1]"),
+        **dict.fromkeys(("R", "R_s", "R_p", "T", "T_s", "T_p"),
+                        "reflectance and transmittance are fractions in [0, 1] (percent? divide by 100)"),
+        **dict.fromkeys(_MUELLER, "the elements of a Mueller matrix normalized by m11 lie in [-1, 1]")}
+
+
+def _out_of_range(kind, v):
+    """The flat index of the first value of `kind` in `v` outside its range (with the noise margin of
+    `_RANGES`), or None."""
+    lo, hi = _RANGES.get(kind, (-np.inf, np.inf))
+    slack = 0.05 * (hi - lo)
+    bad = np.flatnonzero((np.ravel(v) < lo - slack) | (np.ravel(v) > hi + slack))
+    return int(bad[0]) if bad.size else None
+
+
+class Spectra(NamedTuple):
+    """Measured spectra on one grid of `(wavelength, angle)` points, for one sample or a map.
+
+    **Fields:**
+
+    - `wavelength_nm`, `angle_deg`: `(P,)`, the points (vacuum wavelength in nm, angle of
+      incidence in degrees).
+    - `kinds`: the measured quantities, a tuple of names from `KINDS`.
+    - `values`: `(..., Q, P)` with `Q = len(kinds)`; leading axes are map points (sites).
+    - `sigma`: `(..., Q, P)` standard deviations, or `None` when the data give none.
+    - `sites`: the site labels of a map, in the order of the leading axis, or `None`.
+    - `path`: the file read, or `None`.
+    - `site_xy`: `(n_sites, 2)`, the position of each site on the sample in mm (`x_mm`, `y_mm`
+      columns), or `None`.
+    """
+
+    wavelength_nm: np.ndarray
+    angle_deg: np.ndarray
+    kinds: tuple
+    values: np.ndarray
+    sigma: np.ndarray | None = None
+    sites: tuple | None = None
+    path: str | None = None
+    site_xy: np.ndarray | None = None
+
+    @property
+    def batch_shape(self):
+        return self.values.shape[:-2]
+
+
+def make_spectra(wavelength_nm: Float[ArrayLike, " P"], angle_deg: Float[ArrayLike, "#P"], values: dict, *, sigma: dict | None = None,
+                 sites: tuple | None = None, site_xy: Float[ArrayLike, "n_sites 2"] | None = None) -> Spectra:
+    """Build `Spectra` from arrays: `values` maps kind names (see `KINDS`) to arrays `(..., P)`,
+    `sigma` (optional) maps the same names to standard deviations of the same shapes. For a map
+    (leading axes), `sites` labels its sites and `site_xy` gives their positions in mm, both in
+    the order of the flattened leading axes. Values are checked as `load_spectra` checks a file's
+    (finite; each quantity in its range up to noise), naming the quantity and the point."""
+    w = np.asarray(wavelength_nm, np.float64).reshape(-1)
+    a = np.broadcast_to(np.asarray(angle_deg, np.float64), w.shape).copy()
+    if not values:
+        raise ValueError("values is empty: give at least one measured quantity")
+    bad = [k for k in values if k not in KINDS]
+    if bad:
+        raise ValueError(f"unknown measured quantities {bad}; known: {', '.join(KINDS)}")
+    kinds = tuple(values)
+    V = np.stack([np.asarray(values[k], np.float64) for k in kinds], axis=-2)
+    if V.shape[-1] != w.shape[0]:
+        raise ValueError(f"values have {V.shape[-1]} points along their last axis, wavelength_nm has {w.shape[0]}")
+    S = None
+    if sigma is not None:
+        if set(sigma) != set(kinds):
+            raise ValueError(f"sigma must give the same quantities as values: {sorted(kinds)}, got {sorted(sigma)}")
+        S = np.stack([np.broadcast_to(np.asarray(sigma[k], np.float64), V.shape[:-2] + V.shape[-1:]) for k in kinds], axis=-2)
+    _check_values(w, a, kinds, V, S, None)
+    n = int(np.prod(V.shape[:-2]))
+    if (sites is not None or site_xy is not None) and V.ndim < 3:
+        raise ValueError("sites and site_xy describe a map: give values with leading (site) axes")
+    if sites is not None:
+        sites = tuple(str(x) for x in sites)
+        if len(sites) != n or len(set(sites)) != n:
+            raise ValueError(f"sites must be {n} distinct labels (one per spectrum), got {len(sites)} ({len(set(sites))} distinct)")
+    if site_xy is not None:
+        site_xy = np.asarray(site_xy, np.float64)
+        if site_xy.shape != (n, 2) or not np.all(np.isfinite(site_xy)):
+            raise ValueError(f"site_xy must be finite positions of shape ({n}, 2), got shape {site_xy.shape}")
+    return Spectra(w, a, kinds, V, S, sites, None, site_xy)
+
+
+def _check_values(w, a, kinds, V, S, where):
+    at = f"{where}: " if where else ""
+    if not np.all(np.isfinite(w)) or np.any(w <= 0):
+        raise ValueError(f"{at}wavelengths must be finite and positive")
+    if not np.all(np.isfinite(a)) or np.any(a < 0) or np.any(a >= 90):
+        raise ValueError(f"{at}angles of incidence must lie in [0, 90) degrees")
+    if not np.all(np.isfinite(V)):
+        i = np.argwhere(~np.isfinite(V))[0]
+        raise ValueError(f"{at}non-finite value of {kinds[i[-2]]} at point {i[-1]}")
+    for q, kind in enumerate(kinds):
+        j = _out_of_range(kind, V[..., q, :])
+        if j is not None:
+            site, p = divmod(j, V.shape[-1])
+            where_p = f"point {p}" + (f" of spectrum {site}" if V.ndim > 2 else "")
+            raise ValueError(f"{at}{kind} = {V[..., q, :].reshape(-1)[j]:g} at {where_p}: {_WHY[kind]}")
+    if S is not None and (not np.all(np.isfinite(S)) or np.any(S <= 0)):
+        raise ValueError(f"{at}sigma must be finite and positive")
+
+
+def load_spectra(path: str | os.PathLike) -> Spectra:
+    """Read spectroscopic data from a CSV file into `Spectra`.
+
+    The first non-comment line is the header (lines starting with `#` are comments). Columns:
+
+    - `wavelength_nm` or `wavelength_um` (one of them, required) and `angle_deg` (required);
+    - measured quantities, any of `psi_deg, delta_deg, N, C, S, R, R_s, R_p, T, T_s, T_p`, or the
+      normalized Mueller matrix `m11 ... m44` (converted to `N, C, S`, see the module docstring);
+    - `sigma_<quantity>` (e.g. `sigma_psi_deg`), optional, for each measured quantity or none;
+    - `site`, optional: a label of the map point; every site must list the same
+      `(wavelength, angle)` points in the same order;
+    - `x_mm`, `y_mm`, optional (both or neither, with `site`): the site's position on the sample,
+      the same on every row of a site (`Spectra.site_xy`; `plot_stack_map` draws maps with them).
+
+    Errors name the file, the line and the column: a cell that is not a number, a row with NaN
+    (rejected, with its line), a row of the wrong length, an unknown column, a header separated
+    by semicolons or tabs, angles outside `[0, 90)`, a value outside its quantity's range by more
+    than noise (5% of the range: Psi in [0, 90] degrees, N, C, S and normalized Mueller elements
+    in [-1, 1], R and T in [0, 1]), sites with different points, a site whose rows give
+    different positions.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except OSError as e:
+        raise ValueError(f"{path}: cannot read ({e.strerror})") from None
+    lines = [(i, l) for i, l in enumerate(text.splitlines(), 1) if l.strip() and not l.lstrip().startswith("#")]
+    if not lines:
+        raise ValueError(f"{path}: no header line (the file is empty or all comments)")
+    hline, header_text = lines[0]
+    header = _header_names(path, hline, header_text)
+    for j, h in enumerate(header, 1):
+        ok = h in KINDS or h in _MUELLER or h in ("wavelength_nm", "wavelength_um", "angle_deg", "site", "x_mm", "y_mm") or (
+            h.startswith("sigma_") and h[6:] in KINDS + _MUELLER)
+        if not ok:
+            hint = _NEAR.get(h.lower())
+            hint = f" (did you mean {hint}?)" if hint else ""
+            _fail(path, hline, f"column {j} {h!r} is not a known column{hint}; known: wavelength_nm | wavelength_um, angle_deg, site, x_mm, y_mm, "
+                               f"{', '.join(KINDS)}, m11..m44, sigma_<quantity>")
+    if len(set(header)) != len(header):
+        _fail(path, hline, f"a column name appears twice in {header}")
+    wl_cols = [h for h in header if h.startswith("wavelength_")]
+    if len(wl_cols) != 1:
+        _fail(path, hline, "give exactly one of the columns wavelength_nm, wavelength_um")
+    if "angle_deg" not in header:
+        _fail(path, hline, "missing column angle_deg (angle of incidence in degrees)")
+    if ("x_mm" in header) != ("y_mm" in header):
+        _fail(path, hline, "give both site position columns x_mm and y_mm, or neither")
+    if "x_mm" in header and "site" not in header:
+        _fail(path, hline, "x_mm and y_mm give the positions of sites: add a site column")
+    measured = [h for h in header if h in KINDS or h in _MUELLER]
+    if not measured:
+        _fail(path, hline, f"no measured quantity; give one or more of {', '.join(KINDS)} or m11..m44")
+    num = [h for h in header if h != "site"]
+    cols: dict[str, list[float]] = {h: [] for h in num}
+    site_col: list[str] = []
+    line_no: list[int] = []
+    for i, l in lines[1:]:
+        cells = next(csv.reader([l]))
+        if len(cells) != len(header):
+            _fail(path, i, f"{len(cells)} cells, the header has {len(header)}")
+        for j, (h, c) in enumerate(zip(header, cells), 1):
+            c = c.strip()
+            if h == "site":
+                site_col.append(c)
+                continue
+            try:
+                v = float(c)
+            except ValueError:
+                _fail(path, i, f"column {j} ({h}): {c!r} is not a number")
+            if math.isnan(v):
+                _fail(path, i, f"column {j} ({h}) is NaN; rows with missing values are rejected: remove the row or fill it")
+            if math.isinf(v):
+                _fail(path, i, f"column {j} ({h}) is infinite")
+            cols[h].append(v)
+        line_no.append(i)
+    if not line_no:
+        raise ValueError(f"{path}: no data rows after the header (line {hline})")
+    A = {h: np.asarray(v, np.float64) for h, v in cols.items()}
+    lines_arr = np.asarray(line_no)
+    wl = A[wl_cols[0]] * (1000.0 if wl_cols[0] == "wavelength_um" else 1.0)
+    for name, bad in (("wavelength", ~(wl > 0)), ("angle_deg", ~((A["angle_deg"] >= 0) & (A["angle_deg"] < 90)))):
+        if bad.any():
+            k = int(np.argmax(bad))
+            col = wl_cols[0] if name == "wavelength" else "angle_deg"
+            _fail(path, lines_arr[k], f"column {header.index(col) + 1} ({col}) = {A[col][k]}: must be "
+                  + ("positive" if name == "wavelength" else "in [0, 90) degrees"))
+    # quantities: the named ones, then N, C, S from a Mueller matrix
+    values: dict[str, np.ndarray] = {}
+    sigmas: dict[str, np.ndarray] = {}
+    for kind in KINDS:
+        if kind in A:
+            values[kind] = A[kind]
+            if "sigma_" + kind in A:
+                sigmas[kind] = A["sigma_" + kind]
+    mu = [m for m in _MUELLER if m in A]
+    if mu:
+        if "m11" in A and np.any(np.abs(A["m11"] - 1) > 1e-6):
+            row = int(np.argmax(np.abs(A["m11"] - 1) > 1e-6))
+            _fail(path, lines_arr[row], f"m11 = {A['m11'][row]}: the Mueller matrix must be normalized (m11 = 1)")
+        for q, parts in (("N", (("m12", -1), ("m21", -1))), ("C", (("m33", 1), ("m44", 1))), ("S", (("m34", 1), ("m43", -1)))):
+            have = [(m, sign) for m, sign in parts if m in A]
+            if have and q not in values:
+                values[q] = np.sum([sign * A[m] for m, sign in have], axis=0) / len(have)
+                sig = [A["sigma_" + m] for m, _ in have if "sigma_" + m in A]
+                if len(sig) == len(have):
+                    sigmas[q] = np.sqrt(np.sum([x * x for x in sig], axis=0)) / len(have)
+        if not any(q in values for q in ("N", "C", "S")):
+            _fail(path, hline, "Mueller columns given without any of m12, m21, m33, m44, m34, m43 (the isotropic elements)")
+    for kind in header:
+        stray = _out_of_range(kind, A[kind]) if kind in _RANGES else None
+        if stray is not None:
+            _fail(path, lines_arr[stray], f"column {header.index(kind) + 1} ({kind}) = {A[kind][stray]:g}: {_WHY[kind]}")
+    if sigmas and set(sigmas) != set(values):
+        missing = sorted(set(values) - set(sigmas))
+        _fail(path, hline, f"sigma columns are given for some quantities but not for {missing}: give all or none")
+    for kind, sg in sigmas.items():
+        if np.any(sg <= 0):
+            j = int(np.argmax(sg <= 0))
+            _fail(path, lines_arr[j], f"sigma of {kind} = {sg[j]}: must be positive")
+    kinds = tuple(values)
+    V = np.stack([values[k] for k in kinds])  # (Q, rows)
+    S = np.stack([sigmas[k] for k in kinds]) if sigmas else None
+    a = A["angle_deg"]
+    sites: tuple | None = None
+    xy = None
+    if site_col:
+        labels = list(dict.fromkeys(site_col))
+        idx = [np.flatnonzero(np.asarray(site_col) == lab) for lab in labels]
+        P = len(idx[0])
+        for lab, ix in zip(labels, idx):
+            if len(ix) != P or not (np.array_equal(wl[ix], wl[idx[0]]) and np.array_equal(a[ix], a[idx[0]])):
+                _fail(path, lines_arr[ix[0]], f"site {lab!r} does not list the same (wavelength, angle) points, in the same order, "
+                      f"as site {labels[0]!r}")
+        if "x_mm" in A:
+            for lab, ix in zip(labels, idx):
+                for c in ("x_mm", "y_mm"):
+                    moved = np.flatnonzero(A[c][ix] != A[c][ix[0]])
+                    if moved.size:
+                        r = ix[moved[0]]
+                        _fail(path, lines_arr[r], f"column {header.index(c) + 1} ({c}) = {A[c][r]}: site {lab!r} is at {c} = "
+                              f"{A[c][ix[0]]} on line {lines_arr[ix[0]]}; a site has one position")
+            xy = np.stack([[A["x_mm"][ix[0]], A["y_mm"][ix[0]]] for ix in idx])
+        V = np.stack([V[:, ix] for ix in idx])
+        S = None if S is None else np.stack([S[:, ix] for ix in idx])
+        wl, a, sites = wl[idx[0]], a[idx[0]], tuple(labels)
+    return Spectra(wl, a, kinds, V, S, sites, str(path), xy)
+
+
+def save_spectra(path: str | os.PathLike, spectra: Spectra) -> None:
+    """Write `Spectra` as CSV in the format `load_spectra` reads (a `site` column for maps, and
+    `x_mm`, `y_mm` where the sites have positions)."""
+    batch = spectra.values.shape[:-2]
+    V = spectra.values.reshape((-1,) + spectra.values.shape[-2:])
+    S = None if spectra.sigma is None else spectra.sigma.reshape(V.shape)
+    labels = spectra.sites or (tuple(str(i) for i in range(V.shape[0])) if batch else (None,))
+    cols = ["wavelength_nm", "angle_deg"] + list(spectra.kinds) + ([f"sigma_{k}" for k in spectra.kinds] if S is not None else [])
+    xy = None if spectra.site_xy is None or not batch else np.asarray(spectra.site_xy, np.float64).reshape(-1, 2)
+    with open(path, "w", encoding="utf-8", newline="") as f:
+        w = csv.writer(f)
+        w.writerow((["site"] if batch else []) + (["x_mm", "y_mm"] if xy is not None else []) + cols)
+        for b, lab in enumerate(labels):
+            where = [repr(float(c)) for c in xy[b]] if xy is not None else []
+            for p in range(V.shape[-1]):
+                row = [repr(float(spectra.wavelength_nm[p])), repr(float(spectra.angle_deg[p]))]
+                row += [repr(float(x)) for x in V[b, :, p]]
+                if S is not None:
+                    row += [repr(float(x)) for x in S[b, :, p]]
+                w.writerow(([lab] if batch else []) + where + row)
