@@ -11,6 +11,7 @@ import pytest
 import tmm
 
 import jaxoptics as jo
+from jaxoptics._runtime._options import QUICK_COMPILE
 from jaxoptics.__main__ import main  # in-process calls pass --no-cache: the compilation cache is process-wide
 
 THETA = np.deg2rad(np.linspace(0, 85, 90))
@@ -76,7 +77,7 @@ def _checked_fit_eta(theta, R, *, sigma=None, init=None, **kw):
     return eager
 
 
-@functools.partial(jax.jit, static_argnames="kw")
+@functools.partial(jax.jit, static_argnames="kw", compiler_options=QUICK_COMPILE)
 def _jit_fit_eta(theta, R, sigma, init, kw):
     """One jitted function for the whole file (the options static), so that cases with the same
     shapes and options share one compilation."""
@@ -101,7 +102,7 @@ def _dispersion_summary(fit, lam):
             "residual_rms": fit.residual_rms}
 
 
-@functools.partial(jax.jit, static_argnames="kw")
+@functools.partial(jax.jit, static_argnames="kw", compiler_options=QUICK_COMPILE)
 def _jit_fit_dispersion(lam, theta, R, sigma, init, kw):
     return _dispersion_summary(_fit_dispersion(lam, theta, R, sigma=sigma, init=init, **dict(kw)), lam)
 

@@ -72,20 +72,29 @@ def _singular_points(dtype):
 
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_gradients_finite_everywhere(dtype):
-    bad = []
+    """Every kernel's value, reverse-mode gradient and forward-mode Jacobian in (cos_i, eta1, eta2)
+    at every singular point: all of them in one compiled program, mapped over the points with
+    `jax.vmap` (which computes each point on its own)."""
     kernels = [(n, f) for n, f, _ in SCALAR_KERNELS] + VECTOR_KERNELS
-    for (name, f), p in itertools.product(kernels, _singular_points(dtype)):
-        if name.startswith("refract"):
-            if p[0] > 1:
-                continue  # an angle parameterization needs cos <= 1
-            p = (dtype(np.arccos(p[0])),) + p[1:]  # refract is parameterized by the angle
-        args = tuple(jnp.asarray(x) for x in p)
-        val = f(*args)
+    cases = []
+    for name, f in kernels:
+        pts = _singular_points(dtype)
+        if name.startswith("refract"):  # refract is parameterized by the angle, which needs cos <= 1
+            pts = [(dtype(np.arccos(p[0])),) + p[1:] for p in pts if p[0] <= 1]
+        cases.append((name, f, pts, tuple(np.array(col, dtype) for col in zip(*pts))))
+
+    @jax.jit
+    def everything(args):
+        return [(jax.vmap(f)(*a), jax.vmap(jax.grad(f, argnums=(0, 1, 2)))(*a), jax.vmap(jax.jacfwd(f, argnums=(0, 1, 2)))(*a))
+                for (_, f, _, _), a in zip(cases, args)]
+
+    bad = []
+    for (name, _, pts, _), (val, rev, fwd) in zip(cases, everything([c[3] for c in cases])):
         assert val.dtype == dtype, (name, val.dtype)
-        for mode, g in (("rev", jax.grad(f, argnums=(0, 1, 2))), ("fwd", jax.jacfwd(f, argnums=(0, 1, 2)))):
-            grads = g(*args)
-            if not all(bool(jnp.isfinite(x)) for x in grads) or not bool(jnp.isfinite(val)):
-                bad.append((name, mode, p, [float(x) for x in grads], float(val)))
+        for mode, grads in (("rev", rev), ("fwd", fwd)):
+            grads = [np.asarray(x) for x in grads]
+            ok = np.isfinite(np.asarray(val)) & np.all([np.isfinite(x) for x in grads], axis=0)
+            bad += [(name, mode, pts[k], [float(x[k]) for x in grads], float(val[k])) for k in np.flatnonzero(~ok)]
     assert not bad, bad[:10]
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -95,12 +104,16 @@ def test_second_derivatives_finite_everywhere(dtype):
     derivative rules, and reverse over forward meets 0 * inf in an unguarded rule that the first
     derivatives never see (grazing incidence under TIR)."""
     pts = np.asarray(_singular_points(dtype)).T
-    args = tuple(jnp.asarray(x) for x in pts)
     modes = {"fwd-fwd": (jax.jacfwd, jax.jacfwd), "rev-fwd": (jax.jacrev, jax.jacfwd),
              "fwd-rev": (jax.jacfwd, jax.jacrev), "rev-rev": (jax.jacrev, jax.jacrev)}
+    cases = list(itertools.product(SCALAR_KERNELS, modes.items()))
+
+    @jax.jit  # every kernel and composition in one program (mapped over the points)
+    def hessians(x):
+        return [jax.vmap(outer(lambda x: inner(lambda y: f(*y))(x)))(x) for (_, f, _), (_, (outer, inner)) in cases]
+
     bad = []
-    for (name, f, _), (mode, (outer, inner)) in itertools.product(SCALAR_KERNELS, modes.items()):
-        h = jax.vmap(outer(lambda x: inner(lambda y: f(*y))(x)))(jnp.stack(args, -1))
+    for ((name, _, _), (mode, _)), h in zip(cases, hessians(jnp.asarray(pts.T))):
         assert h.shape == (len(pts[0]), 3, 3) and h.dtype == dtype, (name, mode, h.shape, h.dtype)
         for p, hp in zip(pts.T, np.asarray(h)):
             if not np.all(np.isfinite(hp)):

@@ -52,7 +52,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -66,6 +66,9 @@ from .._films._sample import Sample
 from .._io._spectra import Spectra
 from .._runtime import _cache
 from .._runtime._options import known_options
+
+if TYPE_CHECKING:
+    from jax.sharding import Mesh
 from . import _stack_fit_stages as _stages
 
 DEFAULT_SIGMA = {"psi_deg": 0.05, "delta_deg": 0.1, "N": 0.002, "C": 0.002, "S": 0.002,
@@ -171,7 +174,7 @@ def _data_index(model, lam_um):
 
 
 def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, starts: int = 1,
-              max_grid: int = 4096, max_steps: int = 200, progress: bool = False) -> StackFit:
+              max_grid: int = 4096, max_steps: int = 200, progress: bool = False, mesh: Mesh | None = None) -> StackFit:
     """Fit the `Free` parameters of `sample` to `spectra` (one spectrum or a map of them).
 
     **Arguments:**
@@ -185,7 +188,15 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     - `max_grid`: the most grid points per spectrum (several free thicknesses share this budget).
     - `max_steps`: Levenberg-Marquardt steps per start.
     - `progress`: report on standard error how many spectra the Gauss-Newton stage has done
-      (from inside the compiled call; for maps that take minutes).
+      (from inside the compiled call; for maps that take minutes; on a `mesh`, each device
+      reports its own block).
+    - `mesh`: a one-dimensional device mesh (`batch_mesh()`) to fit a map over: its sites are
+      split into one block per device, each device fits its own block in the one program
+      (`jax.shard_map`: no data move and no communication between devices while they fit), and
+      every field of the result is sharded along the sites. A map whose number of sites is not a
+      multiple of the device count is padded with copies of its last site for the fit, and the
+      padding is dropped from the result (which then comes back unsharded, as JAX cannot shard
+      an uneven length). Default: one device.
 
     The fit runs in float64 when `jax_enable_x64` is on (recommended: the phase of a micrometre
     film is a few hundred radians), float32 otherwise.
@@ -214,14 +225,20 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     dtype = jnp.dtype(jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32)
     batch = spectra.values.shape[:-2]
     B = math.prod(batch)
-    V = jnp.asarray(spectra.values.reshape((B, Q, P)), dtype)
+    V = np.asarray(spectra.values, dtype).reshape((B, Q, P))
     sigma_given = spectra.sigma is not None
     if spectra.sigma is not None:
-        S = jnp.asarray(spectra.sigma.reshape((B, Q, P)), dtype)
+        S = np.asarray(spectra.sigma, dtype).reshape((B, Q, P))
     else:
-        S = jnp.broadcast_to(jnp.asarray([DEFAULT_SIGMA[k] for k in kinds], dtype)[:, None], (B, Q, P))
-    key = (sample, kinds, tuple(map(float, spectra.wavelength_nm)), tuple(map(float, spectra.angle_deg)), B,
-           dtype.name, sigma_given, bool(global_start), int(starts), int(max_grid), int(max_steps), bool(progress))
+        S = np.broadcast_to(np.asarray([DEFAULT_SIGMA[k] for k in kinds], dtype)[:, None], (B, Q, P))
+    devices = _mesh_devices(mesh)
+    Bp = -(-B // len(devices)) * len(devices)  # sites padded to a multiple of the device count
+    pad = lambda a: np.concatenate([a, np.broadcast_to(a[-1:], (Bp - B,) + a.shape[1:])]) if Bp > B else a
+    V, S = _place(pad(V), mesh), _place(pad(S), mesh)
+    # the fit of one block of sites, on one device or on each device of the mesh
+    key = (sample, kinds, tuple(map(float, spectra.wavelength_nm)), tuple(map(float, spectra.angle_deg)),
+           Bp // len(devices), dtype.name, sigma_given, bool(global_start), int(starts), int(max_grid), int(max_steps),
+           bool(progress), None if mesh is None else (mesh.axis_names[0], tuple(d.id for d in devices)))
     try:
         hash(key)
     except TypeError:  # a model holding lists or arrays: compiled for this call only
@@ -233,7 +250,7 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
         with jax.ensure_compile_time_eval():  # built on concrete values, also when called while tracing
             return build()
 
-    options = _stages._options(B, Q, P)
+    options = _stages._options(Bp // len(devices), Q, P)
 
     def call(stage, args):
         # The stages are built (the grid computed, optimistix imported when traced) only when one
@@ -256,23 +273,53 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     else:
         out = call(_stages.second_stage, (V, S, state))
     x, sd, cov, corr, chi2r, conv, at_b, steps = out
-    shp = lambda a: a.reshape(batch + a.shape[1:])
+    shp = lambda a: (a if Bp == B else a[:B]).reshape(batch + a.shape[1:])
     return StackFit(tuple(f.name for f in free), shp(x), shp(sd), shp(cov), shp(corr), shp(chi2r), shp(conv),
                     shp(at_b), shp(steps), sigma_given)
 
 
+def _mesh_devices(mesh) -> list:
+    """The devices of a one-dimensional `mesh`, in its order (one default device without a mesh)."""
+    if mesh is None:
+        return [None]
+    if not isinstance(mesh, jax.sharding.Mesh) or len(mesh.axis_names) != 1:
+        raise ValueError(f"mesh must be a one-dimensional jax.sharding.Mesh (jo.batch_mesh()), got {mesh!r}")
+    return list(np.asarray(mesh.devices).ravel())
+
+
+def _place(a, mesh):
+    """`a` (`(B, ...)`, NumPy) on the default device, or split along its first axis over `mesh`."""
+    if mesh is None:
+        return jnp.asarray(a)
+    spec = jax.sharding.PartitionSpec(mesh.axis_names[0], *([None] * (a.ndim - 1)))
+    return jax.device_put(a, jax.sharding.NamedSharding(mesh, spec))
+
+
 @functools.lru_cache(maxsize=16)
-def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts, max_grid, max_steps, progress):
+def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts, max_grid, max_steps, progress,
+             mesh=None):
     """The fit for one sample structure, data grid and batch size (cached: a second `fit_stack`
     call with the same ones runs without tracing or compiling): its `FitProblem` and the three
     stages of `_stack_fit_stages.STAGES` on it, each with its compiled form: `first_stage(V, S)
     -> state`, the fringe search and Gauss-Newton; `errors_stage(V, S, state) -> fit`, its
     standard errors; `second_stage(V, S, state) -> fit`, Levenberg-Marquardt for the spectra
-    Gauss-Newton did not fit, then the standard errors."""
+    Gauss-Newton did not fit, then the standard errors.
+
+    `mesh`: None, or `(axis name, device ids)` of a one-dimensional mesh: then `B` is the sites of
+    one device's block, and each stage runs on every device's block at once (`jax.shard_map`
+    over the leading axis of every argument and result: the stages' blocks of sites are
+    independent, so nothing crosses between devices)."""
     prob = _stages.build_problem(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts,
                                  max_grid, max_steps, progress)
     options = known_options(_stages._options(B, len(kinds), len(wl_nm)))
     stages = [functools.partial(f, prob) for f in _stages.STAGES]
+    if mesh is not None:
+        axis, ids = mesh
+        by_id = {d.id: d for d in jax.devices()}
+        devices = jax.sharding.Mesh(np.asarray([by_id[i] for i in ids]), (axis,))
+        spec = jax.sharding.PartitionSpec(axis)
+        stages = [jax.shard_map(f, mesh=devices, in_specs=(spec,) * n, out_specs=spec, check_vma=False)
+                  for f, n in zip(stages, (2, 3, 3))]
     return tuple(_Stage(f, jax.jit(f, compiler_options=options)) for f in stages)
 
 

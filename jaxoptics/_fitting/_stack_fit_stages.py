@@ -390,7 +390,7 @@ def gauss_newton_passes(prob: FitProblem, U0, V, S):
     from ._pool import gauss_newton_edm_stop, pooled_least_squares
 
     M, Q = prob.M, prob.Q
-    gn = optx.GaussNewton(rtol=prob.tol, atol=prob.tol)
+    gn: optx.AbstractLeastSquaresSolver = optx.GaussNewton(rtol=prob.tol, atol=prob.tol)
     spec = jnp.arange(M) // prob.starts  # the spectrum of each (spectrum, start) problem
     U1, st0 = U0, 0
     if prob.two_pass:
@@ -426,7 +426,7 @@ def levenberg_marquardt_rescue(prob: FitProblem, V, S, U0, x, c2, ok, steps):
     from ._pool import pooled_least_squares
 
     M = prob.M
-    lm = optx.LevenbergMarquardt(rtol=prob.tol, atol=prob.tol)
+    lm: optx.AbstractLeastSquaresSolver = optx.LevenbergMarquardt(rtol=prob.tol, atol=prob.tol)
     spec = jnp.arange(M) // prob.starts
     pend = ~ok[spec]
     order = jnp.argsort(~pend, stable=True)

@@ -517,8 +517,10 @@ def table(rows) -> str:
     return "\n".join(out)
 
 
-def run(*, n=1_000_000, out_dir="stress_out", mp_samples=2000, mitsuba=True, quiet=False) -> dict:
-    """Run the sweep; write stress.json and stress.md into `out_dir`; return the report."""
+def run(*, n=1_000_000, out_dir="stress_out", mp_samples=2000, mitsuba=True, quiet=False, stack_media=None) -> dict:
+    """Run the sweep; write stress.json and stress.md into `out_dir`; return the report.
+    `stack_media`: the numbers of media of the thin-film section's stacks (default: all of
+    `stress_stack.L_CHOICES`)."""
     import jax
     from tqdm.auto import tqdm
 
@@ -529,18 +531,21 @@ def run(*, n=1_000_000, out_dir="stress_out", mp_samples=2000, mitsuba=True, qui
     out.mkdir(parents=True, exist_ok=True)
     n_random = max(int(n * 0.8), 1000)  # the structured inputs bring the total above n
     report = {"machine": machine_description(), "n_requested": n, "rows": [], "date": run_stamp()}
-    from .stress_stack import CATEGORIES, stack_stress_table, stress_stack
+    from .stress_stack import CATEGORIES, L_CHOICES, stack_stress_table, stress_stack
+
+    media = L_CHOICES if stack_media is None else tuple(stack_media)
 
     total = 2 * (len(_scalar_kernels()) + 5) + (1 if mitsuba else 0) + len(CATEGORIES)
     with tqdm(total=total, desc="stress", unit="kernel", disable=quiet) as bar:
         for dtype in (np.float32, np.float64):
             report["rows"] += stress_scalar(dtype, n_random, bar, mp_samples=mp_samples)
             report["rows"] += stress_vector(dtype, n_random, bar, mp_samples=max(mp_samples // 5, 50))
-        report["stack"] = stress_stack(n_points=max(n // 10, 4000), mp_samples=max(mp_samples // 10, 40), progress=bar)
+        report["stack"] = stress_stack(n_points=max(n // 10, 4000), mp_samples=max(mp_samples // 10, 40), progress=bar,
+                                       media=media)
         if mitsuba:
             report["mitsuba"] = mitsuba_comparison(progress=bar)
     md = [f"Measured by `python -m jaxoptics stress --n {n}` on {report['date']}. Machine: {report['machine']}.", "", table(report["rows"]), "",
-          "Thin-film stacks (`stack`, 3 to 12 media; float32 against float64 on the same inputs):", "",
+          f"Thin-film stacks (`stack`, {', '.join(map(str, media))} media; float32 against float64 on the same inputs):", "",
           stack_stress_table(report["stack"])]
     if "mitsuba" in report:
         m = report["mitsuba"]
