@@ -73,3 +73,13 @@ def test_readme_python_examples_run(tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     assert (tmp_path / "fit.png").stat().st_size > 20000
     assert (tmp_path / "index_fit.png").stat().st_size > 20000
+
+
+def test_home_page_lists_every_page_of_the_site():
+    """Every page of the site's navigation (mkdocs.yml) is linked from the home page's table, so the
+    home page shows every area the package covers."""
+    nav = re.findall(r"^\s*- [^:]+: (\S+\.md)$", (ROOT / "mkdocs.yml").read_text(), flags=re.M)
+    home = _targets(ROOT / "docs" / "index.md")
+    assert len(nav) >= 10
+    missing = [page for page in nav if page != "index.md" and page not in home]
+    assert not missing, missing

@@ -11,8 +11,8 @@ import pytest
 import tmm
 
 import jaxoptics as jo
-from jaxoptics._runtime._options import QUICK_COMPILE
 from jaxoptics.__main__ import main  # in-process calls pass --no-cache: the compilation cache is process-wide
+from jaxoptics._runtime._options import QUICK_COMPILE
 
 THETA = np.deg2rad(np.linspace(0, 85, 90))
 
@@ -77,6 +77,9 @@ def _checked_fit_eta(theta, R, *, sigma=None, init=None, **kw):
     return eager
 
 
+# The callers' programs are compiled with the package's quick options (`QUICK_COMPILE`, as a
+# caller may choose them): the comparison is of the same fit eagerly and under the caller's `jit`,
+# to the tolerances above, and these programs compile in well under half the time.
 @functools.partial(jax.jit, static_argnames="kw", compiler_options=QUICK_COMPILE)
 def _jit_fit_eta(theta, R, sigma, init, kw):
     """One jitted function for the whole file (the options static), so that cases with the same

@@ -8,14 +8,15 @@ import pytest
 
 from jaxoptics.tools.stress import run
 
-# one worker runs the whole module, so the module's sweep (the `report` fixture) runs once
+# one worker runs the whole module (`--dist loadgroup`), and the sweep (`report`) is kept for the
+# worker's session: it runs once, even where the worker runs other modules' tests in between
 pytestmark = pytest.mark.xdist_group("stress")
 
 
 SWEEP = 20_000
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def report(tmp_path_factory):
     return run(n=SWEEP, out_dir=tmp_path_factory.mktemp("stress"), mp_samples=150, mitsuba=False, quiet=True,
                stack_media=(3, 8))

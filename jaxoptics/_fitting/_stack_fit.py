@@ -191,12 +191,13 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
       (from inside the compiled call; for maps that take minutes; on a `mesh`, each device
       reports its own block).
     - `mesh`: a one-dimensional device mesh (`batch_mesh()`) to fit a map over: its sites are
-      split into one block per device, each device fits its own block in the one program
-      (`jax.shard_map`: no data move and no communication between devices while they fit), and
-      every field of the result is sharded along the sites. A map whose number of sites is not a
-      multiple of the device count is padded with copies of its last site for the fit, and the
-      padding is dropped from the result (which then comes back unsharded, as JAX cannot shard
-      an uneven length). Default: one device.
+      split into one block per device, each device fits its own block with the same program
+      compiled for it (no data move and no communication between devices while they fit; the
+      devices' calls are all dispatched before any result is read), and every field of the
+      result is sharded along the sites. A map whose number of sites is not a multiple of the
+      device count is padded with copies of its last site for the fit, and the padding is
+      dropped from the result (which then comes back unsharded, as JAX cannot shard an uneven
+      length). Default: one device.
 
     The fit runs in float64 when `jax_enable_x64` is on (recommended: the phase of a micrometre
     film is a few hundred radians), float32 otherwise.
@@ -233,12 +234,12 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
         S = np.broadcast_to(np.asarray([DEFAULT_SIGMA[k] for k in kinds], dtype)[:, None], (B, Q, P))
     devices = _mesh_devices(mesh)
     Bp = -(-B // len(devices)) * len(devices)  # sites padded to a multiple of the device count
+    Bs = Bp // len(devices)  # the sites of one device's block
     pad = lambda a: np.concatenate([a, np.broadcast_to(a[-1:], (Bp - B,) + a.shape[1:])]) if Bp > B else a
-    V, S = _place(pad(V), mesh), _place(pad(S), mesh)
-    # the fit of one block of sites, on one device or on each device of the mesh
-    key = (sample, kinds, tuple(map(float, spectra.wavelength_nm)), tuple(map(float, spectra.angle_deg)),
-           Bp // len(devices), dtype.name, sigma_given, bool(global_start), int(starts), int(max_grid), int(max_steps),
-           bool(progress), None if mesh is None else (mesh.axis_names[0], tuple(d.id for d in devices)))
+    V, S = pad(V), pad(S)
+    # the fit of one block of sites (the whole map without a mesh), the same on every device
+    key = (sample, kinds, tuple(map(float, spectra.wavelength_nm)), tuple(map(float, spectra.angle_deg)), Bs,
+           dtype.name, sigma_given, bool(global_start), int(starts), int(max_grid), int(max_steps), bool(progress))
     try:
         hash(key)
     except TypeError:  # a model holding lists or arrays: compiled for this call only
@@ -250,7 +251,7 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
         with jax.ensure_compile_time_eval():  # built on concrete values, also when called while tracing
             return build()
 
-    options = _stages._options(Bp // len(devices), Q, P)
+    options = _stages._options(Bs, Q, P)
 
     def call(stage, args):
         # The stages are built (the grid computed, optimistix imported when traced) only when one
@@ -263,15 +264,17 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
         return _cache.call(run, f"{stage.__module__}.{stage.__name__}", args, static=key, options=options,
                            fallback=lambda: jitted(*args))
 
-    # Two compiled calls: Gauss-Newton, then the standard errors, or, where Gauss-Newton left some
-    # spectrum unfitted (one read from the device decides), Levenberg-Marquardt and the standard
-    # errors. The Levenberg-Marquardt program is compiled only when needed: on the bundled example
-    # it is not, and a first call compiles about a third less.
-    state = call(_stages.first_stage, (V, S))
-    if bool(np.all(np.asarray(state[3]))):
-        out = call(_stages.errors_stage, (V, S, state))
-    else:
-        out = call(_stages.second_stage, (V, S, state))
+    # Two compiled calls per block: Gauss-Newton, then the standard errors, or, where Gauss-Newton
+    # left some spectrum of the block unfitted (one read from the device decides),
+    # Levenberg-Marquardt and the standard errors. The Levenberg-Marquardt program is compiled only
+    # when needed: on the bundled example it is not, and a first call compiles about a third less.
+    # On a mesh, every device's calls are dispatched before any result is read, so the devices
+    # fit at once.
+    blocks = [(_put(V[k * Bs:(k + 1) * Bs], d), _put(S[k * Bs:(k + 1) * Bs], d)) for k, d in enumerate(devices)]
+    states = [call(_stages.first_stage, blk) for blk in blocks]
+    outs = [call(_stages.errors_stage if bool(np.all(np.asarray(st[3]))) else _stages.second_stage, blk + (st,))
+            for blk, st in zip(blocks, states)]
+    out = outs[0] if mesh is None else jax.tree.map(lambda *a: _assemble(a, mesh), *outs)
     x, sd, cov, corr, chi2r, conv, at_b, steps = out
     shp = lambda a: (a if Bp == B else a[:B]).reshape(batch + a.shape[1:])
     return StackFit(tuple(f.name for f in free), shp(x), shp(sd), shp(cov), shp(corr), shp(chi2r), shp(conv),
@@ -287,39 +290,30 @@ def _mesh_devices(mesh) -> list:
     return list(np.asarray(mesh.devices).ravel())
 
 
-def _place(a, mesh):
-    """`a` (`(B, ...)`, NumPy) on the default device, or split along its first axis over `mesh`."""
-    if mesh is None:
-        return jnp.asarray(a)
-    spec = jax.sharding.PartitionSpec(mesh.axis_names[0], *([None] * (a.ndim - 1)))
-    return jax.device_put(a, jax.sharding.NamedSharding(mesh, spec))
+def _put(a, device):
+    """`a` (NumPy) on `device`, or on the default device where `device` is None."""
+    return jnp.asarray(a) if device is None else jax.device_put(a, device)
+
+
+def _assemble(blocks, mesh):
+    """One array sharded along its first axis over `mesh` from the devices' blocks, in mesh order."""
+    shape = (sum(b.shape[0] for b in blocks),) + blocks[0].shape[1:]
+    spec = jax.sharding.PartitionSpec(mesh.axis_names[0], *([None] * (len(shape) - 1)))
+    return jax.make_array_from_single_device_arrays(shape, jax.sharding.NamedSharding(mesh, spec), list(blocks))
 
 
 @functools.lru_cache(maxsize=16)
-def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts, max_grid, max_steps, progress,
-             mesh=None):
+def _program(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts, max_grid, max_steps, progress):
     """The fit for one sample structure, data grid and batch size (cached: a second `fit_stack`
     call with the same ones runs without tracing or compiling): its `FitProblem` and the three
     stages of `_stack_fit_stages.STAGES` on it, each with its compiled form: `first_stage(V, S)
     -> state`, the fringe search and Gauss-Newton; `errors_stage(V, S, state) -> fit`, its
     standard errors; `second_stage(V, S, state) -> fit`, Levenberg-Marquardt for the spectra
-    Gauss-Newton did not fit, then the standard errors.
-
-    `mesh`: None, or `(axis name, device ids)` of a one-dimensional mesh: then `B` is the sites of
-    one device's block, and each stage runs on every device's block at once (`jax.shard_map`
-    over the leading axis of every argument and result: the stages' blocks of sites are
-    independent, so nothing crosses between devices)."""
+    Gauss-Newton did not fit, then the standard errors."""
     prob = _stages.build_problem(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, global_start, starts,
                                  max_grid, max_steps, progress)
     options = known_options(_stages._options(B, len(kinds), len(wl_nm)))
     stages = [functools.partial(f, prob) for f in _stages.STAGES]
-    if mesh is not None:
-        axis, ids = mesh
-        by_id = {d.id: d for d in jax.devices()}
-        devices = jax.sharding.Mesh(np.asarray([by_id[i] for i in ids]), (axis,))
-        spec = jax.sharding.PartitionSpec(axis)
-        stages = [jax.shard_map(f, mesh=devices, in_specs=(spec,) * n, out_specs=spec, check_vma=False)
-                  for f, n in zip(stages, (2, 3, 3))]
     return tuple(_Stage(f, jax.jit(f, compiler_options=options)) for f in stages)
 
 
