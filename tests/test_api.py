@@ -92,6 +92,7 @@ def _real_dtype(x):
     return jnp.finfo(x.dtype).dtype if jnp.iscomplexobj(x) else x.dtype
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(KERNEL_CALLS))
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_jit_vmap_match_eager_and_keep_dtype(name, dtype):
@@ -107,6 +108,7 @@ def test_jit_vmap_match_eager_and_keep_dtype(name, dtype):
         np.testing.assert_allclose(np.asarray(m), np.asarray(e), rtol=4 * np.finfo(dtype).eps, atol=4 * np.finfo(dtype).eps)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(KERNEL_CALLS))
 def test_grad_jvp_vjp_compose(name):
     f = KERNEL_CALLS[name]
@@ -128,6 +130,7 @@ def test_grad_jvp_vjp_compose(name):
     np.testing.assert_allclose(float(jv), float(sum(jnp.sum(a) for a in vj)), rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_broadcasting_over_leading_axes():
     i, n = _ray_batch(np.float64, shape=(4, 5))
     e2 = jnp.linspace(1.1, 1.9, 5)  # broadcasts against the last batch axis
@@ -154,6 +157,7 @@ def test_results_are_named_and_unpack():
     np.testing.assert_allclose(float(a.R_p), float(R_p), rtol=1e-14)
 
 
+@pytest.mark.slow
 def test_kernel_results_index_like_tuples():
     """The kernels' results are sequences of their fields in field order, as the tuples they
     unpack as: indexing (negative too), slicing, len, and jnp.stack / np.asarray over them."""
@@ -177,6 +181,7 @@ RESULT_TYPES = ["Refraction", "FresnelAmplitudes", "Interaction", "Hit", "StackR
                 "FitResult", "DispersionFit", "StackFit"]
 
 
+@pytest.mark.slow
 def test_one_kind_of_result_container():
     """Every result type of the API is the same kind of container: a frozen dataclass registered
     as a JAX pytree, with static fields out of its leaves; `dataclasses.replace` works on it and
@@ -203,6 +208,7 @@ def test_one_kind_of_result_container():
     assert (psi, delta) == (e.psi, e.delta)
 
 
+@pytest.mark.slow
 def test_float32_stays_float32_with_python_scalars():
     c = jnp.linspace(0, 1, 5, dtype=jnp.float32)
     assert jo.fresnel(c, 1.0, 1.5).dtype == jnp.float32

@@ -47,6 +47,7 @@ def test_integer_arrays_and_bad_method():
     assert float(jo.fresnel(1.0, 1, 2)) == pytest.approx(1 / 9)
 
 
+@pytest.mark.slow
 def test_documented_out_of_domain_values():
     """Values cannot raise under jit; what each produces is documented in the kernels."""
     nan = float("nan")

@@ -3,7 +3,11 @@ benchmark, never asserted in tests: this machine is shared and noisy)."""
 
 import json
 
+import pytest
+
 from jaxoptics.tools.bench import run
+
+pytestmark = pytest.mark.slow  # the quick subset (-m "not slow") leaves this file out
 
 
 def test_bench_runs_and_reports_every_method(tmp_path):

@@ -53,6 +53,7 @@ def _fails(*args, **kwargs):
     pytest.fail("the program was traced again instead of loaded from the store")
 
 
+@pytest.mark.slow
 def test_fit_eta_stored_loaded_and_repaired(tmp_path, monkeypatch, caplog):
     c = jo.load_reflectance(jo.example_path()).curves()[0]
     fit = lambda: jo.fit_eta(c.theta, c.R, polarization=c.polarization, sigma=c.sigma)
@@ -106,6 +107,7 @@ def test_fit_eta_stored_loaded_and_repaired(tmp_path, monkeypatch, caplog):
     assert np.asarray(plain.converged).all()
 
 
+@pytest.mark.slow
 def test_new_numbers_of_angles_and_curves_compile_the_stored_program_without_tracing(store, monkeypatch):
     """The batched solve is stored as one traced program for every number of angles from 16 to
     4096 and of curves up to 32 (`_fit_followups.angles_poly`): data of another size in that range
@@ -162,6 +164,7 @@ def _no_serialization(*args, **kwargs):
     raise NotImplementedError("this backend does not serialize executables")
 
 
+@pytest.mark.slow
 def test_fit_stack_stored_and_loaded(store, monkeypatch):
     wl = np.linspace(400.0, 900.0, 60)
     truth = jo.Sample([jo.Layer(1.46, 250.0)], jo.material("Si")).fixed()
@@ -304,6 +307,7 @@ print(float(r.eta), bool(r.converged), *(m in sys.modules for m in ("optimistix"
 """
 
 
+@pytest.mark.slow
 def test_warm_process_calls_the_stored_executable_without_the_solver_stack(tmp_path):
     """A process whose fit is in the store loads its executable: it traces and compiles nothing,
     so it does not import optimistix, equinox or lineax, nor ask XLA which compiler options it
@@ -319,6 +323,7 @@ def test_warm_process_calls_the_stored_executable_without_the_solver_stack(tmp_p
     assert warm[:2] == first[:2] and first[1] == "True"
 
 
+@pytest.mark.slow
 def test_program_found_in_jax_cache_is_stored_in_a_form_a_later_process_runs(tmp_path):
     """A process whose executable is missing from the store (deleted, pruned, or stored under the
     key of another jaxoptics version) but whose program JAX's persistent compilation cache holds
@@ -342,6 +347,7 @@ def test_program_found_in_jax_cache_is_stored_in_a_form_a_later_process_runs(tmp
         assert later.stdout.split()[2:5] == ["False", "False", "False"], later.stdout  # nothing traced
 
 
+@pytest.mark.slow
 def test_stored_executable_that_fails_to_run_is_dropped_and_compiled_again(tmp_path):
     """An executable that loads but fails when run (here: one written the way that lost its
     kernels, by a process that does not watch for JAX's cache hits) is deleted, with a warning,
@@ -383,6 +389,7 @@ print(*(m in sys.modules for m in ("optimistix", "equinox", "lineax")), jo._runt
 """
 
 
+@pytest.mark.slow
 def test_warm_process_runs_a_stored_executable_that_calls_lapack(tmp_path):
     """`fit_stack`'s program calls LAPACK (QR, eigh), whose kernels jaxlib sets up when it lowers a
     linear-algebra operation; a process that only loads the executable sets them up itself (it
@@ -425,6 +432,7 @@ print("traced:", "optimistix" in sys.modules, len(list(_cache._dir[0].glob("*" +
 """
 
 
+@pytest.mark.slow
 def test_first_command_line_fit_compiles_a_shipped_program_without_tracing(tmp_path):
     """With an empty cache, `fit --example` compiles the shipped program of its form instead of
     tracing (it does not import optimistix, and stores no traced program of its own), and prints
@@ -465,6 +473,7 @@ print("imported:", "optimistix" in sys.modules, "scipy.linalg" in sys.modules, _
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("form", [[], ["--absorbing"]], ids=["real index", "complex index"])
 def test_fit_without_the_store_compiles_a_shipped_program_without_tracing(form):
     """With the store off (`--no-cache`, or a library call without `enable_cache`), a fit whose

@@ -5,6 +5,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 
 def _run(args, **env):
     e = dict(os.environ)
@@ -33,6 +35,7 @@ def _shipped_programs_apply() -> bool:
     return manifest["versions"] == _cache.library_versions() and manifest["source"] == _cache.source_hash()
 
 
+@pytest.mark.slow
 def test_fit_keeps_compiled_programs_between_runs(tmp_path):
     """A first run fills the cache directory (compiled programs and the fit's executable), a
     second run gives the same answer from it without tracing the fit; `--no-cache` and
@@ -59,6 +62,7 @@ def test_fit_keeps_compiled_programs_between_runs(tmp_path):
     assert not (home / "xdg").exists()
 
 
+@pytest.mark.slow
 def test_command_ends_with_its_output_exit_code_and_exit_handlers(tmp_path):
     """`python -m jaxoptics` ends its process without the interpreter's teardown (`_exit_now`):
     output written to a file (block-buffered) is complete, exit handlers run after the command, and

@@ -64,6 +64,7 @@ def test_site_builds_strict(tmp_path):
     assert not absent, absent
 
 
+@pytest.mark.slow
 def test_readme_python_examples_run(tmp_path):
     """The README's Python blocks, run in order in a fresh process (as a user would paste them), in
     an empty directory (the figure they save lands there)."""

@@ -128,6 +128,7 @@ def tmm_curve(n1, n2, theta, pol):
     return one(pol)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("eta2", [1.01, 1.333, 1.5, 2.4, 4.0])
 @pytest.mark.parametrize("pol", ["unpolarized", "s", "p"])
 def test_recovers_index_from_tmm_data(eta2, pol):
@@ -144,6 +145,7 @@ def test_internal_reflection_with_tir_plateau(eta1, eta2):
     assert bool(r.converged) and abs(float(r.eta) - eta2) < 1e-7
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("eta2", [0.2 + 3.0j, 1.5 + 0.5j, 2.5 + 2.5j, 0.05 + 4.2j, 1.45 + 0.0j])
 def test_recovers_complex_index_from_tmm_data(eta2):
     R = tmm_curve(1.0, eta2, THETA, "unpolarized")
@@ -163,6 +165,7 @@ def test_synthetic_reflectance_matches_tmm():
                                    tmm_curve(1.0, n2, THETA, pol), atol=1e-13)
 
 
+@pytest.mark.slow
 def test_errors_are_honest_cramer_rao():
     """sigma = 1e-3 over 0-85 degrees: all converge; the spread of the estimates matches the reported
     standard error within 20% (it is the Cramer-Rao bound here); ~95% within 2 standard errors."""
@@ -179,6 +182,7 @@ def test_errors_are_honest_cramer_rao():
         assert 0.93 < within < 0.975, within  # binomial: 0.954 +- 3 sd for N = 3000
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("degrees", [(0, 85), (20, 70)])
 def test_internal_reflection_errors_are_honest(degrees):
     """Noisy internal reflection (eta1 = 1.5, eta2 from 1.0 to 1.49, sigma = 1e-3). Two ways to
@@ -209,6 +213,7 @@ def test_internal_reflection_errors_are_honest(degrees):
         assert np.all(np.asarray(r.stderr)[ambiguous] >= np.abs(eta - alt[ambiguous]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("degrees", [(0, 15), (0, 30)])
 def test_small_angle_range_branch_ambiguity_is_reported(degrees):
     """External reflection measured at small angles only: eta2 and eta1^2 / eta2 have the same
@@ -229,6 +234,7 @@ def test_small_angle_range_branch_ambiguity_is_reported(degrees):
     np.testing.assert_allclose(alt[ambiguous] * np.asarray(r.eta)[ambiguous], 1.0, rtol=0.05)
 
 
+@pytest.mark.slow
 def test_large_batch_in_blocks_matches_single_fits():
     """Batches larger than a block (about 2^17 points) are fitted block by block inside the one
     compiled call, the last block padded: every curve still gets its own fit."""
@@ -245,6 +251,7 @@ def test_large_batch_in_blocks_matches_single_fits():
         np.testing.assert_allclose(float(r.stderr[j]), float(one.stderr), rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_curves_gauss_newton_does_not_finish_are_refitted():
     """Curves Gauss-Newton does not converge on within max_steps are refitted with
     Levenberg-Marquardt in a second batched call (over a padded subset) and reported honestly."""
@@ -258,6 +265,7 @@ def test_curves_gauss_newton_does_not_finish_are_refitted():
     np.testing.assert_allclose(np.asarray(capped.eta)[ok], np.asarray(full.eta)[ok], rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_complex_errors_are_honest():
     N = 800
     eta = 0.2 + 3.0j
@@ -273,6 +281,7 @@ def test_complex_errors_are_honest():
     assert abs(float(jnp.mean(r.corr_nk)) - sample) < 0.1
 
 
+@pytest.mark.slow
 def test_absorbing_fits_leave_the_k_zero_stationary_point():
     """R depends on k only through k^2, so a complex fit started at k = 0 stays there. The real
     physical estimates used to win the start on moderately absorbing media (n about 3, k about 1),
@@ -292,6 +301,7 @@ def test_absorbing_fits_leave_the_k_zero_stationary_point():
     assert abs(complex(d.eta) - 1.5) < 1e-6
 
 
+@pytest.mark.slow
 def test_batch_equals_individual_fits_and_keeps_shape():
     etas = jnp.array([[1.2, 1.5, 3.0], [1.05, 2.0, 4.0]])
     R = jo.synthetic_reflectance(jax.random.PRNGKey(0), etas, THETA, noise=1e-3)
@@ -304,6 +314,7 @@ def test_batch_equals_individual_fits_and_keeps_shape():
             np.testing.assert_allclose(float(one.stderr), float(r.stderr[a, b]), rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_curves_in_different_polarizations_fit_in_one_call():
     """A batch whose curves are in different polarizations (one name per curve, broadcast to the
     batch shape) gives each curve the fit of its own polarization: the same estimates, errors and
@@ -336,6 +347,7 @@ def test_curves_in_different_polarizations_fit_in_one_call():
         jo.fit_eta(THETA, R, polarization=("s", "p", "s"))
 
 
+@pytest.mark.slow
 def test_wide_range_all_converge():
     etas = jnp.concatenate([jnp.linspace(1.01, 4.0, 300)])
     R = jo.synthetic_reflectance(jax.random.PRNGKey(3), etas, THETA, noise=1e-3)
@@ -344,6 +356,7 @@ def test_wide_range_all_converge():
     assert float(jnp.max(jnp.abs(r.eta - etas) / r.stderr)) < 5
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["external", "internal", "sigma_init", "absorbing"])
 def test_fit_result_under_jit_and_vmap(case):
     """vmap over a batch axis agrees with the eager batch fit, for each kind of fit and its
@@ -388,6 +401,7 @@ def test_degenerate_data_errors():
         jo.fit_eta(THETA, np.ones(80))
 
 
+@pytest.mark.slow
 def test_pure_noise_is_not_a_confident_answer():
     """Uniform noise in place of a reflectance curve: the errors are large or the fit is flagged."""
     rng = np.random.default_rng(0)
@@ -410,6 +424,7 @@ def test_published_indices():
         jo.material_index("unobtainium", 0.5)
 
 
+@pytest.mark.slow
 def test_dispersion_fit_recovers_fused_silica():
     lam = np.array([0.365, 0.405, 0.436, 0.486, 0.546, 0.633, 0.706, 0.852, 1.014, 1.33, 1.55])
     theta = np.deg2rad(np.linspace(0, 85, 60))
@@ -458,6 +473,7 @@ def test_dispersion_fit_reports_an_infrared_pole_beyond_the_data_honestly():
     assert 0.7 < np.sqrt(np.mean(np.square(pulls))) < 1.3
 
 
+@pytest.mark.slow
 def test_dispersion_fit_gives_undetermined_coefficients_huge_errors():
     """A 3-term Sellmeier law on noisy data (fused silica from tmm, 0.365-1.55 um, noise 1e-3):
     in some draws two ultraviolet poles merge (C_1 = C_2), where only B_1 + B_2 is determined and
@@ -480,6 +496,7 @@ def test_dispersion_fit_gives_undetermined_coefficients_huge_errors():
     assert merged >= 2
 
 
+@pytest.mark.slow
 def test_dispersion_index_error_is_the_same_along_an_undetermined_direction():
     """Two Sellmeier poles at one wavelength (C_1 = C_2) make a 3-term law that is exactly a 2-term
     law with B_1 + B_2: any split of B fits the same. Moving the solution along that split by hand
@@ -532,6 +549,7 @@ def test_dispersion_index_error_is_the_same_along_an_undetermined_direction():
         np.testing.assert_allclose(se_n, near[0], rtol=1e-4, err_msg=f"poles split by {e}")
 
 
+@pytest.mark.slow
 def test_plot_dispersion_fit_draws_the_law_and_the_residuals():
     """`plot_dispersion_fit`: the fitted Cauchy law (its closed form from the coefficients) over the
     measured range, at each measured wavelength, and tmm's reflectance of the law's index minus the
@@ -608,6 +626,7 @@ def test_load_reflectance_groups_curves(tmp_path):
     np.testing.assert_array_equal(curves[1].lines, [4, 3])
 
 
+@pytest.mark.slow
 def test_cli_fit_example(capsys, tmp_path):
     out_png = tmp_path / "fit.png"
     assert main(["fit", "--example", "--plot", str(out_png), "--no-cache"]) == 0
@@ -635,6 +654,7 @@ def test_cli_fit_example(capsys, tmp_path):
     plt.close("all")
 
 
+@pytest.mark.slow
 def test_cli_fit_file_and_errors(capsys, tmp_path):
     R = np.asarray(jo.synthetic_reflectance(None, 1.7, THETA[::5]))
     rows = "\n".join(f"{np.rad2deg(t):.6f},{r:.12f}" for t, r in zip(THETA[::5], R))
@@ -651,6 +671,7 @@ def test_cli_fit_file_and_errors(capsys, tmp_path):
 
 
 
+@pytest.mark.slow
 def test_cli_fits_curves_on_shared_angles_together(capsys, tmp_path):
     """Curves of several polarizations and wavelengths, on two sets of angles: each curve's line
     reports its own index (data from tmm), in the file's curve order."""
@@ -666,6 +687,7 @@ def test_cli_fits_curves_on_shared_angles_together(capsys, tmp_path):
         assert int(l[2]) == th.size and abs(float(l[3]) - n) < 1e-6
 
 
+@pytest.mark.slow
 def test_cli_fits_a_dispersion_law(capsys, tmp_path):
     """`fit --dispersion`: tmm s-reflectance of fused silica with noise at six wavelengths, sigma
     given. The printed coefficients are `fit_dispersion`'s on the same data, the printed index at
@@ -714,6 +736,7 @@ def test_cli_fits_a_dispersion_law(capsys, tmp_path):
     assert "--terms goes with --dispersion" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_reports_an_index_the_data_cannot_exclude(capsys, tmp_path):
     """Measured at 0-15 degrees only, this curve (eta = 1.2) fits about as well with 0.834: the
     CLI says so next to the fit, and the standard error covers both."""
@@ -858,6 +881,7 @@ def test_complex_fit_model_and_jacobian_match_mpmath(pol):
                     assert abs(d - w) <= 1e-9 * abs(w) + 1e-14, (pol, a, eta, c, j, d, w)
 
 
+@pytest.mark.slow
 def test_plot_fit_draws_the_fitted_index_and_its_residuals():
     """`plot_fit` draws, for each curve, the measured points, tmm's reflectance of the fitted index
     over all angles (and of the other branch, dashed, where the data allow it), and model - data."""
@@ -895,6 +919,7 @@ def test_plot_fit_draws_the_fitted_index_and_its_residuals():
     plt.close(fig)
 
 
+@pytest.mark.slow
 def test_plot_fit_chooses_curves_and_refuses_bad_arguments():
     import matplotlib.pyplot as plt
 

@@ -27,6 +27,7 @@ def _fd(f, x, h, idx, order=2):
     return np.stack(out)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("pol", ["unpolarized", "s", "p"])
 def test_index_derivative_in_the_data(pol):
     R = np.asarray(jo.synthetic_reflectance(jax.random.PRNGKey(0), 1.5, TH, polarization=pol, noise=1e-3))
@@ -42,6 +43,7 @@ def test_index_derivative_in_the_data(pol):
     assert abs(float(jnp.sum(g * dR)) - 1) < 1e-2
 
 
+@pytest.mark.slow
 def test_derivatives_in_eta1_angles_and_sigma():
     eta1 = 1.33
     R = np.asarray(jo.synthetic_reflectance(jax.random.PRNGKey(1), 1.6, TH, eta1=eta1, noise=1e-3))
@@ -56,6 +58,7 @@ def test_derivatives_in_eta1_angles_and_sigma():
     assert abs(float(jnp.sum(jax.grad(f_sig)(sig) * sig))) < 1e-9
 
 
+@pytest.mark.slow
 def test_internal_reflection_and_complex_derivatives():
     # internal reflection with a TIR plateau in the data
     R = np.asarray(jo.synthetic_reflectance(jax.random.PRNGKey(2), 1.2, TH, eta1=1.5, noise=1e-3))
@@ -72,6 +75,7 @@ def test_internal_reflection_and_complex_derivatives():
         np.testing.assert_allclose(jax.grad(f)(R)[::4], _fd(f, R, 3e-3, range(0, 40, 4), order=4), rtol=1e-5, atol=1e-8)
 
 
+@pytest.mark.slow
 def test_error_and_chi2_derivatives():
     R = np.asarray(jo.synthetic_reflectance(jax.random.PRNGKey(4), 2.0, TH, noise=1e-3))
     for field in ("stderr", "chi2_reduced", "residual_rms"):
@@ -80,6 +84,7 @@ def test_error_and_chi2_derivatives():
                                    err_msg=field)
 
 
+@pytest.mark.slow
 def test_batched_derivatives_under_jit_and_vmap():
     etas = jnp.array([1.3, 1.7, 2.5])
     R = jo.synthetic_reflectance(jax.random.PRNGKey(5), etas, TH, noise=1e-3)
@@ -93,6 +98,7 @@ def test_batched_derivatives_under_jit_and_vmap():
     assert float(jnp.max(jnp.abs(J[~np.eye(3, dtype=bool)]))) == 0.0
 
 
+@pytest.mark.slow
 def test_unconverged_fits_have_nan_derivatives():
     R = np.asarray(jo.synthetic_reflectance(None, 1.5, TH))
     g = jax.grad(lambda R: jo.fit_eta(TH, R, max_steps=1, init=3.0).eta)(R)

@@ -68,6 +68,7 @@ def _check(got, cases, dtype, key_fn, label, ulps=4):
     assert not failures, failures[:10]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_fresnel_sp_rt_against_mpmath(dtype):
     cases = _cases(dtype)

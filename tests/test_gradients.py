@@ -70,6 +70,7 @@ def _singular_points(dtype):
     return [tuple(dtype(x) for x in p) for p in pts]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_gradients_finite_everywhere(dtype):
     """Every kernel's value, reverse-mode gradient and forward-mode Jacobian in (cos_i, eta1, eta2)
@@ -97,6 +98,7 @@ def test_gradients_finite_everywhere(dtype):
             bad += [(name, mode, pts[k], [float(x[k]) for x in grads], float(val[k])) for k in np.flatnonzero(~ok)]
     assert not bad, bad[:10]
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_second_derivatives_finite_everywhere(dtype):
     """The Hessian in (cos_i, eta1, eta2) at the singular points, in all four compositions of
@@ -121,6 +123,7 @@ def test_second_derivatives_finite_everywhere(dtype):
     assert not bad, bad[:10]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_vector_input_gradients_finite(dtype):
     """d/d(i, n, eta1, eta2) of refract and reflect at TIR, critical, grazing, normal, both normal
@@ -173,6 +176,7 @@ def test_gradients_match_mpmath(name, f, ref):
                 assert abs(float(got[j]) - w) <= 1e-9 * abs(w) + 1e-12, (name, (c, a, b), j, float(got[j]), w)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["degreve", "bec", "heckbert"])
 def test_refract_gradients_match_mpmath(method):
     def ref(theta, a, b, k):

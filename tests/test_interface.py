@@ -46,6 +46,7 @@ def test_schlick_models(fresnel, ref):
     np.testing.assert_allclose(np.asarray(x.R + x.T), 1, atol=1e-15)
 
 
+@pytest.mark.slow
 def test_only_requested_outputs_are_traced():
     i, n, e2 = _rays(100)
     spec = jo.InterfaceSpec(outputs=("R",))
@@ -83,6 +84,7 @@ def test_conductor_and_polarized_outputs():
         jo.interface(i, n, 1.0, e2, spec=jo.InterfaceSpec(outputs=("X",)))
 
 
+@pytest.mark.slow
 def test_scene_interface_selects_by_material():
     i, n, e2 = _rays(1200, seed=3)
     kinds = ("mirror", "dielectric", "conductor", "thin_dielectric")
@@ -154,6 +156,7 @@ def test_outputs_agree_on_tir_within_ulps_of_the_critical_angle(dtype):
     assert np.max(snell[~tir]) < 16 * eps
 
 
+@pytest.mark.slow
 def test_scene_interface_coated_kinds_against_tmm():
     """Coated dielectric and conductor: R and T per wavelength are those of the three-medium
     stack (checked against tmm, unpolarized), directions and the TIR mask as without the film,

@@ -140,6 +140,7 @@ def test_methods_agree(dtype):
     assert np.max(np.abs(np.asarray(td) - np.asarray(tb))[away]) < 64 * eps
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_no_interface(dtype):
     """eta1 == eta2: R = 0 and T = 1 at every angle, grazing included, and t == i (bit for bit
@@ -192,6 +193,7 @@ def test_stokes_reciprocity():
         np.testing.assert_allclose(np.asarray(t) * np.asarray(tt), 1 - np.asarray(r) ** 2, atol=1e-13)
 
 
+@pytest.mark.slow
 def test_fresnel_against_tmm():
     """A peer implementation: tmm (transfer matrices), a single interface between two half-spaces,
     real and complex indices (including metals), s and p, amplitudes and powers."""

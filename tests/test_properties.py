@@ -3,6 +3,7 @@ singularities (grazing, normal incidence, the critical angle, equal indices)."""
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -45,16 +46,19 @@ def _check_fresnel(c, a, b):
         assert abs(abs(complex(r)) ** 2 - Rk) <= spread + 20 * np.finfo(float).eps * Rk + 1e-300, (k, c, a, b)
 
 
+@pytest.mark.slow
 @given(cosine, eta, eta)
 def test_fresnel_invariants(c, a, b):
     _check_fresnel(c, a, b)
 
 
+@pytest.mark.slow
 @given(near_critical())
 def test_fresnel_invariants_near_critical(x):
     _check_fresnel(*x)
 
 
+@pytest.mark.slow
 @given(st.floats(0, np.pi / 2), st.floats(0, 2 * np.pi), eta, eta, st.booleans())
 def test_refract_invariants(theta, phi, a, b, flip):
     n = np.array([0.0, 0.0, -1.0 if flip else 1.0])

@@ -59,6 +59,7 @@ def _tir_in_box(args, dtype):
     return seen
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("method", ["degreve", "bec", "heckbert"])
 def test_refract_against_mpmath(dtype, method):
@@ -106,6 +107,7 @@ def test_reflect_against_mpmath(dtype):
         assert err <= bound + 4 * eps, (args, err, bound)
 
 
+@pytest.mark.slow
 def test_heckbert_and_oliveira_documented_accuracy():
     """`heckbert` (textbook algebra) is close to `degreve` for ordinary inputs and loses accuracy
     only where documented (grazing incidence with close indices); `oliveira` stays within the

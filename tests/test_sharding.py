@@ -7,6 +7,10 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
+pytestmark = pytest.mark.slow  # the quick subset (-m "not slow") leaves this file out
+
 SCRIPT = textwrap.dedent('''
     import jax
     jax.config.update("jax_enable_x64", True)

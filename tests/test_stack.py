@@ -68,6 +68,7 @@ def _random_stacks(rng, K, L):
 # ---- agreement with tmm --------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("L", [2, 3, 4, 6, 10, 17, 32])
 def test_coherent_stacks_agree_with_tmm(L):
     """Random stacks of 0 to 30 inner layers (metals, absorbers, thick layers, TIR) against tmm's
@@ -99,6 +100,7 @@ def test_coherent_stacks_agree_with_tmm(L):
     assert compared >= 0.8 * K
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("L,inc", [(3, (0,)), (4, (1,)), (5, (0, 2)), (6, (2,)), (8, (0, 3, 5)), (12, (4, 9))])
 def test_incoherent_stacks_agree_with_tmm(L, inc):
     """Mixed coherent/incoherent stacks against tmm's inc_tmm and inc_absorp_in_each_layer."""
@@ -138,6 +140,7 @@ def test_mpmath_oracle_agrees_with_tmm():
 # ---- closed forms --------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_one_interface_equals_fresnel():
     c = np.array([1.0, 0.8, 0.3, 1e-6, 0.0])[:, None]
     for n0, n1 in [(1.0, 1.5), (1.5, 1.0), (1.2, 0.2 + 3.0j), (1.33, 1.33), (2.0, 1.0 + 0.1j)]:
@@ -150,6 +153,7 @@ def test_one_interface_equals_fresnel():
         np.testing.assert_allclose(np.asarray(s.R_p), np.asarray(R_p), atol=4e-16)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n0,n1,ns", [(1.0, 1.38, 1.52), (1.0, 2.0, 1.5), (1.33, 1.8, 3.5)])
 def test_quarter_wave_film(n0, n1, ns):
     """A film of optical thickness lambda/4 at normal incidence: R = ((n0 ns - n1^2)/(n0 ns + n1^2))^2."""
@@ -203,6 +207,7 @@ def test_incoherent_ellipsometry_of_a_slab_is_the_path_sum():
     assert abs(X) < np.sqrt(Rp * Rs) * (1 - 1e-3)  # depolarized
 
 
+@pytest.mark.slow
 def test_ellipsometry_conventions():
     """delta = 0 at normal incidence, pi past Brewster's angle of a bare dielectric, and psi = 45
     degrees at normal incidence; for a film, psi/delta follow from -r_p/r_s."""
@@ -223,6 +228,7 @@ def test_ellipsometry_conventions():
 # ---- physical properties -------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_energy_conservation_and_reciprocity():
     rng = np.random.default_rng(11)
     n, d, wl, theta = _random_stacks(rng, 200, 8)
@@ -241,6 +247,7 @@ def test_energy_conservation_and_reciprocity():
         np.testing.assert_allclose(np.asarray(getattr(rev, f"T_{pol}"))[ok], np.asarray(getattr(res, f"T_{pol}"))[ok], atol=1e-12)
 
 
+@pytest.mark.slow
 def test_zero_thickness_layer_is_absent():
     n = np.array([1.0, 1.46, 2.2 + 0.3j, 2.0, 3.9 + 0.02j])
     d = np.array([100.0, 0.0, 50.0])
@@ -263,6 +270,7 @@ def test_index_matched_layers_and_grazing():
     assert float(z.R) == 0.0 and float(z.T) == 1.0 and complex(z.t_s) == 1.0
 
 
+@pytest.mark.slow
 def test_thick_absorbers_do_not_overflow():
     """d k / lambda from 10 to 10^7: transmission decays to 0, R is the bulk reflectance, all
     finite, gradients too (plain transfer matrices overflow here)."""
@@ -292,6 +300,7 @@ def test_evanescent_incoherent_layer_passes_no_light():
         np.testing.assert_allclose(np.asarray(getattr(res, f"A_{pol}")), 0.0, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_frustrated_tir_tunnelling():
     """Glass | air gap | glass past the critical angle: the transmission of the gap decays as
     exp(-2 kappa d) for thick gaps and matches the oracle at every gap."""
@@ -325,6 +334,7 @@ def _grad_cases():
     ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", _grad_cases(), ids=lambda c: c[0])
 def test_gradients_match_mpmath(case):
     """d R_s, d R_p with respect to each thickness, each n and k, the wavelength and the angle,
@@ -374,6 +384,7 @@ def test_gradients_match_mpmath(case):
                     assert abs(got - expect) <= 1e-7 * max(1.0, abs(expect)), (case[0], pol, which, idx, got, expect)
 
 
+@pytest.mark.slow
 def test_float32_gradients_finite_at_special_points():
     for name, n, d, wl, th in _grad_cases():
         n32 = np.asarray(n, np.complex64)
@@ -381,6 +392,7 @@ def test_float32_gradients_finite_at_special_points():
         assert np.all(np.isfinite(np.asarray(g))), name
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("L,inc", [(2, ()), (4, ()), (3, (0,)), (5, (1,)), (5, (0, 2))])
 def test_float32_gradients_finite_without_any_interface_near_grazing(L, inc):
     """Every medium of the incident medium's index (no interface), at and near grazing incidence
@@ -410,6 +422,7 @@ def test_float32_gradients_finite_without_any_interface_near_grazing(L, inc):
     assert all(np.all(np.isfinite(np.asarray(j))) for j in J[1:]), "forward mode, in k, d, cos_i and the wavelength"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", _grad_cases(), ids=lambda c: c[0])
 def test_hessians_match_mpmath(case):
     """Second derivatives of R_s and R_p in the real parts of the indices after the first medium,
@@ -454,6 +467,7 @@ def test_hessians_match_mpmath(case):
                     assert H[j, i] == pytest.approx(H[i, j], rel=1e-9, abs=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_hessians_finite_at_special_points(dtype):
     """Finite Hessians of R and T where every medium has the incident medium's index, at grazing
@@ -518,6 +532,7 @@ def _richardson_derivatives(f, x0, scale):
     return (16 * G2 - G1) / 15, (16 * H2 - H1) / 15
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_incoherent_derivatives(dtype):
     """First and second derivatives of R_s, T_s, R_p, T_p of stacks with an incoherent layer, in
@@ -568,6 +583,7 @@ def test_incoherent_derivatives(dtype):
 # ---- API, dtype, bad input -----------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_float32_in_float32_out_and_accuracy():
     rng = np.random.default_rng(3)
     n, d, wl, theta = _random_stacks(rng, 100, 6)
@@ -578,6 +594,7 @@ def test_float32_in_float32_out_and_accuracy():
     np.testing.assert_allclose(np.asarray(r32.R), np.asarray(r64.R), atol=2e-4)
 
 
+@pytest.mark.slow
 def test_jit_vmap_and_broadcasting():
     n = np.array([1.0, 1.46, 3.9 + 0.02j])
     wl = np.linspace(400, 800, 5)
@@ -632,6 +649,7 @@ def test_negative_k_within_rounding_is_zero_and_gain_is_refused():
     assert np.isnan(float(jo.fresnel(0.8, 1.0, 2.2046 - 3e-12j)))
 
 
+@pytest.mark.slow
 def test_out_of_domain_inside_jit_is_nan():
     f = jax.jit(jo.stack)
     n = np.array([[1.0, 1.5, 2.0], [1.0, 1.5, -2.0], [1.0, 1.5 - 0.1j, 2.0], [1.0 + 0.1j, 1.5, 2.0]])
@@ -642,6 +660,7 @@ def test_out_of_domain_inside_jit_is_nan():
     assert np.all(np.isnan(np.asarray(res.R))) and np.all(np.isnan(np.asarray(jnp.abs(res.r_s))))
 
 
+@pytest.mark.slow
 def test_jitted_float32_inner_layer_at_its_critical_angle():
     """Regression: under jit, XLA recomputed k_z^2 of a layer in several fused loops with different
     FMA contraction; where it is near 0 (the layer at its critical angle) the copies fell on both
@@ -661,6 +680,7 @@ def test_jitted_float32_inner_layer_at_its_critical_angle():
     np.testing.assert_allclose(np.asarray(res.R_p), 1.0, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_float32_absorption_in_front_of_a_thick_absorber():
     """Regression: the attenuation in front of each interface was formed as (total - suffix) of the
     layers' attenuations; with 10^5 nepers in a thick absorber behind a thin one, that difference
@@ -677,6 +697,7 @@ def test_float32_absorption_in_front_of_a_thick_absorber():
 # ---- large batches: blocks -----------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("inc", [(), (1,)])
 def test_large_batches_in_blocks_agree_with_tmm(monkeypatch, inc):
     """Batches larger than `_BLOCK` points run in blocks (a `lax.map` over them). With a block of
@@ -759,6 +780,7 @@ def test_layer_entries_against_mpmath(dtype):
     assert np.all(c.imag[lossless] == 0) and np.all(s.imag[lossless] == 0)
 
 
+@pytest.mark.slow
 def test_lossless_stack_under_tir_reflects_everything():
     """A stack of lossless layers lit near grazing incidence, with an evanescent wave in the last
     medium: R = 1 and no absorption in either dtype, to a few ulps, across the cavity resonances
@@ -778,6 +800,7 @@ def test_lossless_stack_under_tir_reflects_everything():
                 assert np.all(np.asarray(getattr(res, f"T_{pol}")) == 0)
 
 
+@pytest.mark.slow
 def test_ellipsometry_in_the_instrument_convention():
     """The conversion the docs state, against an independent transcription: the Airy formula of one
     film in the convention of Azzam-Bashara and Fujiwara (time dependence exp(+i omega t), index
@@ -821,6 +844,7 @@ def test_ellipsometry_in_the_instrument_convention():
     np.testing.assert_allclose((np.pi - np.asarray(e.delta)) % (2 * np.pi), [np.pi, np.pi, 0.0], atol=1e-12)
 
 
+@pytest.mark.slow
 def test_psi_delta_agree_with_pyelli():
     """The instrument convention against a second peer: pyElli, which writes the index `n + ik`
     like jaxoptics but `rho = tan(Psi) exp(-i Delta)`, with its own 2x2 transfer matrices. Two-film
@@ -858,6 +882,7 @@ def test_psi_delta_agree_with_pyelli():
     assert np.max(np.abs(wrap(q[:, 1] - Delta))) < 1e-8
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_vectorized_atan2_against_mpmath(dtype):
     """`_atan2` (the ellipsometric angles of `fit_stack`'s model) within 2 ulps of mpmath's

@@ -42,6 +42,7 @@ def cauchy_n(wl, A, B):
     return A + B / (wl / 1000) ** 2
 
 
+@pytest.mark.slow
 def test_quantities_agree_with_tmm_and_with_each_other():
     wl, ang = grid()
     sample = jo.Sample([jo.Layer(jo.Cauchy(**OXIDE), 480.0)], jo.material("Si"))
@@ -63,6 +64,7 @@ def test_quantities_agree_with_tmm_and_with_each_other():
     assert np.all((qb[0] > 0) & (qb[0] < 180)) and np.all(qb[1] > 0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 def test_delta_of_a_bare_dielectric_is_180_below_brewster_and_0_beyond(dtype):
     """A lossless interface has a real rho = r_p / r_s, its imaginary part an exact zero of either
@@ -77,6 +79,7 @@ def test_delta_of_a_bare_dielectric_is_180_below_brewster_and_0_beyond(dtype):
         np.testing.assert_array_equal(delta, np.where(a < math.degrees(math.atan(n)), 180.0, 0.0))
 
 
+@pytest.mark.slow
 def test_incoherent_layer_against_tmm():
     """A 1 mm glass slab (incoherent) on a coated back face, unpolarized R against tmm's inc_tmm."""
     wl = np.linspace(400.0, 800.0, 9)
@@ -130,6 +133,7 @@ def _check_errors_at_the_values(fit, model, sp):
     np.testing.assert_allclose(np.asarray(fit.covariance).reshape(cov.shape), cov, rtol=1e-3, atol=0)
 
 
+@pytest.mark.slow
 def test_recovers_thickness_from_far_starts():
     """Films from 5 nm to 2000 nm, one start (1000 nm) for all: the grid start finds each one's
     fringe, so no fit lands in a neighbouring minimum."""
@@ -147,6 +151,7 @@ def test_recovers_thickness_from_far_starts():
     assert float(nogrid.chi2_reduced[0]) > 10
 
 
+@pytest.mark.slow
 def test_levenberg_marquardt_stage_runs_only_when_needed(monkeypatch):
     """Gauss-Newton fits these spectra, and the Levenberg-Marquardt stage is not called. With
     Gauss-Newton cut to one step it fits none: the second stage then fits every spectrum, to the
@@ -186,6 +191,7 @@ def test_levenberg_marquardt_stage_runs_only_when_needed(monkeypatch):
     assert np.allclose(np.asarray(lm.stderr), np.asarray(ref.stderr), rtol=1e-3)
 
 
+@pytest.mark.slow
 def test_standard_errors_are_calibrated():
     """Over 300 noise draws the spread of the fitted thickness and A over their mean standard
     error lies in [0.8, 1.25]."""
@@ -196,6 +202,7 @@ def test_standard_errors_are_calibrated():
         assert 0.8 <= ratio <= 1.25, (name, ratio)
 
 
+@pytest.mark.slow
 def test_undetermined_parameters_are_reported_not_guessed():
     """A 2 nm film's index and thickness are nearly interchangeable (only their product shows),
     and the index of a layer of zero thickness has no effect at all: the fit reports a
@@ -215,6 +222,7 @@ def test_undetermined_parameters_are_reported_not_guessed():
     assert float(fit.stderr[g]) > 1e6
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k_start", [jo.Free(0.0, 0.0, 1.0), jo.Free(0.0, 0.0)], ids=["bounded", "one-sided"])
 def test_a_start_on_a_bound_is_fitted(k_start):
     """`k = Free(0, 0, ...)`, the usual way to say "start transparent, k >= 0", starts on a bound,
@@ -235,6 +243,7 @@ def test_a_start_on_a_bound_is_fitted(k_start):
         assert abs(float(fit[name]) - truth) < 4 * float(fit.stderr_of(name)), (name, float(fit[name]), float(fit.stderr_of(name)))
 
 
+@pytest.mark.slow
 def test_mixed_quantities_without_sigma():
     """R and psi/delta together, no sigma in the data: the scale comes from the residuals."""
     wl, ang = grid()
@@ -377,6 +386,7 @@ def test_values_out_of_range_by_noise_are_kept_beyond_it_refused(tmp_path):
 # ---- the model file and the command line -------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_cli_fit_stack_example(capsys, tmp_path):
     """The bundled example (made with tmm: 512.4 nm of Cauchy SiO2 on Si) is recovered within its
     standard errors, with chi2_reduced near 1, and the plot is written."""
@@ -396,6 +406,7 @@ def test_cli_fit_stack_example(capsys, tmp_path):
     assert "no upper bound" not in err
 
 
+@pytest.mark.slow
 def test_cli_fit_stack_names_an_unbounded_thickness_of_a_poor_fit(capsys, tmp_path):
     """The example's model without the thickness's max: no search over fringes, so the fit from
     100 nm ends a fringe away from the 512.4 nm film; the command says why."""
@@ -411,6 +422,7 @@ def test_cli_fit_stack_names_an_unbounded_thickness_of_a_poor_fit(capsys, tmp_pa
     assert "note: oxide.thickness_nm has no upper bound, so no search over fringes was made" in err
 
 
+@pytest.mark.slow
 def test_cli_fit_stack_map(tmp_path, capsys):
     """A map file (sites with positions, tmm-generated data with noise): the command prints the
     summary over sites, `--out` writes every site's value and standard error (each within 4 of
@@ -455,6 +467,7 @@ material = "Si"
     assert png.stat().st_size > 20000 and (tmp_path / "fit_map.png").stat().st_size > 20000
 
 
+@pytest.mark.slow
 def test_plot_draws_the_model_between_the_measurements():
     """`plot_stack_fit`'s curves (`_plot._curves`): the model between the measured points against
     tmm, through the model at each measured point, delta's line broken where it wraps (no segment
@@ -641,6 +654,7 @@ material = { model = "drude-lorentz", eps_inf = 1.0, drude = [[{ value = 9.0, mi
     assert "missing.csv: cannot read" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_map_progress_and_noise_free_recovery(capfd):
     """A map of 300 noise-free spectra at one angle (a mapping ellipsometer): every thickness from
     100 to 800 nm is recovered to rounding, and progress is reported from inside the compiled call."""
@@ -654,6 +668,7 @@ def test_map_progress_and_noise_free_recovery(capfd):
     assert "fit_stack: 300 of 300 spectra fitted" in capfd.readouterr().err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["film", "absorbing film", "mixed"])
 def test_jacobian_through_the_stack_inputs_equals_jacfwd(case):
     """`fit_stack`'s Jacobian (tangents through the stack's inputs, `_jacobian_plan`) equals
@@ -709,6 +724,7 @@ def test_jacobian_through_the_stack_inputs_equals_jacfwd(case):
         np.testing.assert_allclose(np.asarray(J_ref[:, i]) / scale[i], fd / scale[i], rtol=0, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_pooled_solves_equal_one_solve_per_problem():
     """`pooled_least_squares` (lanes refilled as problems stop) gives each problem the solution,
     step count and status of its own `optx.least_squares` call; problems outside `order[:count]`
@@ -745,6 +761,7 @@ def test_pooled_solves_equal_one_solve_per_problem():
         assert len(set(np.asarray(steps)[done].tolist())) >= 3
 
 
+@pytest.mark.slow
 def test_gauss_newton_edm_stop_ends_within_a_thousandth_of_a_standard_error():
     """With `gauss_newton_edm_stop`, each pooled Gauss-Newton solve ends at the minimum found by
     optimistix's own stopping test (steps below 1e-12 relative, far tighter) to within 1e-3 of
@@ -788,6 +805,7 @@ def test_gauss_newton_edm_stop_ends_within_a_thousandth_of_a_standard_error():
     assert np.mean(np.asarray(steps)) < np.mean(np.asarray(steps_c)) - 0.5
 
 
+@pytest.mark.slow
 def test_two_pass_gauss_newton_of_a_map_equals_one_pass(monkeypatch):
     """A map of 32 films from 5 nm to 2000 nm is large enough for the two Gauss-Newton passes (the
     first on the grid's subset of 45 of the 100 wavelengths): every film is recovered, and the
@@ -814,6 +832,7 @@ def test_two_pass_gauss_newton_of_a_map_equals_one_pass(monkeypatch):
     np.testing.assert_allclose(np.asarray(two.stderr), np.asarray(one.stderr), rtol=1e-4)
 
 
+@pytest.mark.slow
 def test_several_starts_pick_the_lowest_chi2():
     """`starts=3` refines the three best grid points of each spectrum and keeps the lowest chi^2:
     on these films the best grid point already lies in the right fringe, so the result equals
@@ -828,6 +847,7 @@ def test_several_starts_pick_the_lowest_chi2():
         assert np.all(np.abs(np.asarray(three[name]) - np.asarray(one[name])) < 2e-3 * np.asarray(one.stderr_of(name))), name
 
 
+@pytest.mark.slow
 def test_float32_fit_recovers_the_films():
     """With `jax_enable_x64` off the fit runs in float32: every film is fitted within 4 of its
     standard errors of the truth, and agrees with the float64 fit to 0.1 of a standard error,

@@ -10,7 +10,7 @@ from jaxoptics.tools.stress import run
 
 # one worker runs the whole module (`--dist loadgroup`), and the sweep (`report`) is kept for the
 # worker's session: it runs once, even where the worker runs other modules' tests in between
-pytestmark = pytest.mark.xdist_group("stress")
+pytestmark = [pytest.mark.xdist_group("stress"), pytest.mark.slow]
 
 
 SWEEP = 20_000
