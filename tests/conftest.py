@@ -16,6 +16,20 @@ settings.register_profile("ci", derandomize=True, max_examples=200, deadline=Non
 settings.load_profile("ci")
 
 
+_SESSION_CONFIG = {k: getattr(jax.config, k) for k in ("jax_enable_x64", "jax_numpy_rank_promotion", "jax_numpy_dtype_promotion")}
+
+
+@pytest.fixture(autouse=True)
+def _session_config():
+    """Every test starts with the session's configuration, and a test that changes it (float32
+    runs with `jax_enable_x64` off) cannot leak the change into the tests that pytest-xdist
+    schedules after it on the same worker."""
+    yield
+    for key, value in _SESSION_CONFIG.items():
+        if getattr(jax.config, key) != value:
+            jax.config.update(key, value)
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_programs():
     """Drop every compiled program after each test module. XLA's CPU executables each hold many

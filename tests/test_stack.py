@@ -414,9 +414,9 @@ def test_float32_gradients_finite_without_any_interface_near_grazing(L, inc):
     nr, ni, wl = np.full(L, 1.5, np.float32), np.zeros(L, np.float32), np.float32(550.0)
     out = np.asarray(RT(nr, ni, d, c, wl))
     np.testing.assert_allclose(out, np.repeat([[0.0], [0.0], [1.0], [1.0]], len(c), axis=1), atol=1e-6)
-    J = jax.jacrev(RT, argnums=(0, 1, 2, 3, 4))(nr, ni, d, c, wl)
+    J = jax.jit(jax.jacrev(RT, argnums=(0, 1, 2, 3, 4)))(nr, ni, d, c, wl)
     assert all(np.all(np.isfinite(np.asarray(j))) for j in J)
-    J = jax.jacfwd(RT, argnums=(0, 1, 2, 3, 4))(nr, ni, d, c, wl)
+    J = jax.jit(jax.jacfwd(RT, argnums=(0, 1, 2, 3, 4)))(nr, ni, d, c, wl)
     if not inc:
         assert np.all(np.isfinite(np.asarray(J[0])[:2])), "forward mode, R in n"
     assert all(np.all(np.isfinite(np.asarray(j))) for j in J[1:]), "forward mode, in k, d, cos_i and the wavelength"

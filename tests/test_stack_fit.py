@@ -70,13 +70,13 @@ def test_delta_of_a_bare_dielectric_is_180_below_brewster_and_0_beyond(dtype):
     """A lossless interface has a real rho = r_p / r_s, its imaginary part an exact zero of either
     sign: delta is exactly 180 degrees below Brewster's angle and 0 beyond (closed form), never
     -180 (the documented range is (-180, 180])."""
-    jax.config.update("jax_enable_x64", dtype == jnp.float64)
     w, a = (x.ravel() for x in np.meshgrid(np.linspace(400.0, 800.0, 9), [0.5, 20.0, 45.0, 55.0, 58.0, 62.0, 75.0, 89.0],
                                             indexing="ij"))
-    for n in (1.5, 2.4, 4.0):
-        delta = np.asarray(jo.Sample([], jo.Constant(n)).fixed().quantities(
-            ("delta_deg",), jnp.asarray(w, dtype), jnp.asarray(np.radians(a), dtype)))[0]
-        np.testing.assert_array_equal(delta, np.where(a < math.degrees(math.atan(n)), 180.0, 0.0))
+    with jax.enable_x64(dtype == jnp.float64):
+        for n in (1.5, 2.4, 4.0):
+            delta = np.asarray(jo.Sample([], jo.Constant(n)).fixed().quantities(
+                ("delta_deg",), jnp.asarray(w, dtype), jnp.asarray(np.radians(a), dtype)))[0]
+            np.testing.assert_array_equal(delta, np.where(a < math.degrees(math.atan(n)), 180.0, 0.0))
 
 
 @pytest.mark.slow
@@ -700,15 +700,16 @@ def test_jacobian_through_the_stack_inputs_equals_jacfwd(case):
     x = jnp.asarray(x, jnp.float64)
     wl_j, ang_j = jnp.asarray(wl), jnp.asarray(ang)
     m, J = jax.jit(_model_and_jacobian(sample, kinds, wl_j, ang_j))(x)
-    model = lambda x: sample.with_values([x[i] for i in range(x.shape[0])]).quantities(kinds, wl_j, ang_j, flat=True)
-    J_ref = jax.jacfwd(model)(x)
+    # the references compiled once each (the finite differences call the model 32 times)
+    model = jax.jit(lambda x: sample.with_values([x[i] for i in range(x.shape[0])]).quantities(kinds, wl_j, ang_j, flat=True))
+    J_ref = jax.jit(jax.jacfwd(model))(x)
     np.testing.assert_allclose(m, model(x), rtol=1e-13, atol=1e-13)
     assert np.all(np.isfinite(J))
     scale = np.max(np.abs(J_ref), axis=0)
     np.testing.assert_allclose(np.asarray(J) / scale[None], np.asarray(J_ref) / scale[None], rtol=0, atol=1e-11)
     # reverse mode (the transposed derivative rules) gives the same Jacobian, and both equal
     # fourth-order central differences in every parameter
-    J_rev = jax.jacrev(model)(x)
+    J_rev = jax.jit(jax.jacrev(model))(x)
     np.testing.assert_allclose(np.asarray(J_rev) / scale[None], np.asarray(J_ref) / scale[None], rtol=0, atol=1e-11)
     angle = np.repeat([k == "delta_deg" for k in kinds], len(wl))
 
