@@ -146,8 +146,8 @@ def test_vector_input_gradients_finite(dtype):
         out = {}
         for method in methods:
             f = lambda i, n, a, b, method=method: jnp.sum(jo.refract(i, n, a, b, method=method).t * w)
-            out[method, "rev"] = jax.vmap(jax.grad(f, argnums=(0, 1, 2, 3)))(*args)
-            out[method, "fwd"] = jax.vmap(jax.jacfwd(f, argnums=(0, 1, 2, 3)))(*args)
+            out[f"{method} reverse"] = jax.vmap(jax.grad(f, argnums=(0, 1, 2, 3)))(*args)
+            out[f"{method} forward"] = jax.vmap(jax.jacfwd(f, argnums=(0, 1, 2, 3)))(*args)
         out["reflect"] = jax.vmap(jax.grad(lambda i, n: jnp.sum(jo.reflect(i, n)), argnums=(0, 1)))(args[0], args[1])
         for fn in (jo.critical_angle, jo.brewster_angle):
             out[fn.__name__] = jax.vmap(jax.grad(fn, argnums=(0, 1)))(*pairs)

@@ -188,9 +188,10 @@ def fit_eta(theta: Float[ArrayLike, " m"], R: Float[ArrayLike, "*batch m"], *, e
     # Plain NumPy or Python input is prepared in NumPy: each small eager JAX operation here would be
     # a program of its own, compiled (or looked up in the compilation cache) on a first call.
     xp = jnp if any(isinstance(x, jax.Array) for x in (theta, R, sigma, init, eta1)) or not concrete else np
-    R = _prepared(xp, R, "R")
-    if concrete:  # checked where it will be fitted (a jax.Array by one compiled reduction)
-        check_curves(theta, R, sigma, n_params=p)
+    R_given = V.check_real(R, "R")
+    if concrete:  # the caller's arrays, where they are (a jax.Array by one compiled reduction), never
+        check_curves(theta, R_given, sigma, n_params=p)  # a constant staged into the caller's trace
+    R = _prepared(xp, R_given, "R")
     if not np.isscalar(eta1) and np.ndim(eta1) != 0:
         raise ValueError(f"eta1 must be a scalar, got shape {np.shape(eta1)}")
     theta = _prepared(xp, theta, "theta")

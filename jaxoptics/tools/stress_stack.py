@@ -17,6 +17,8 @@ For every category:
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 CATEGORIES = ("random", "thick absorbers", "TIR and frustrated TIR", "inner layer at its critical angle",
@@ -99,16 +101,19 @@ def stress_stack(*, n_points=100_000, mp_samples=200, progress=None, seed=0, med
     rng = np.random.default_rng(seed)
     rows = []
     per = max(n_points // (len(CATEGORIES) * len(media)), 8)
-    f = jax.jit(jo.stack, static_argnames="incoherent")
-    e = jax.jit(jo.ellipsometry, static_argnames="incoherent")
-
     def loss(nr, ni, d, w, c, inc):
         return jnp.sum(jo.stack(jax.lax.complex(nr, ni), d, w, c, incoherent=inc).R)
 
-    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3, 4)), static_argnums=5)
-    # the derivative along every input at once, forward mode
-    fwd = jax.jit(lambda args, inc: jax.jvp(lambda *a: loss(*a, inc), args, tuple(jnp.ones_like(a) for a in args))[1],
-                  static_argnums=1)
+    @functools.partial(jax.jit, static_argnums=4)
+    def evaluate(n, d, w, c, inc):
+        """Everything the sweep looks at for one batch, one compiled program per dtype and
+        `incoherent`: the stack's and the ellipsometry kernel's results, the gradient of sum(R) in
+        every input, and the derivative along every input at once in forward mode."""
+        args = (jnp.real(n), jnp.imag(n), d, w, c)
+        grad = jax.grad(loss, argnums=(0, 1, 2, 3, 4))(*args, inc)
+        fwd = jax.jvp(lambda *a: loss(*a, inc), args, tuple(jnp.ones_like(a) for a in args))[1]
+        return jo.stack(n, d, w, c, incoherent=inc), jo.ellipsometry(n, d, w, c, incoherent=inc), grad, fwd
+
     for cat in CATEGORIES:
         row = dict(category=cat, n=0, f32_max_abs_err_R=0.0, f32_p999_abs_err_R=0.0, f32_max_excess_R=0.0,
                    f32_max_abs_err_T=0.0, f32_max_abs_err_A=0.0, f32_max_abs_err_psi=0.0, energy_f64=0.0,
@@ -121,8 +126,7 @@ def stress_stack(*, n_points=100_000, mp_samples=200, progress=None, seed=0, med
             # inputs rounded to float32 once; float64 then evaluates exactly those
             n32, d32, w32, c32 = n.astype(np.complex64), d.astype(np.float32), wl.astype(np.float32), c.astype(np.float32)
             n64, d64, w64, c64 = n32.astype(np.complex128), d32.astype(np.float64), w32.astype(np.float64), c32.astype(np.float64)
-            r64, r32 = f(n64, d64, w64, c64, incoherent=inc), f(n32, d32, w32, c32, incoherent=inc)
-            e64, e32 = e(n64, d64, w64, c64, incoherent=inc), e(n32, d32, w32, c32, incoherent=inc)
+            (r64, e64, g64, fwd64), (r32, e32, g32, fwd32) = evaluate(n64, d64, w64, c64, inc), evaluate(n32, d32, w32, c32, inc)
             row["n"] += per
             for res, key in ((r64, "energy_f64"), (r32, "energy_f32")):
                 for pol in "sp":
@@ -139,15 +143,15 @@ def stress_stack(*, n_points=100_000, mp_samples=200, progress=None, seed=0, med
             reflects = (np.asarray(r64.R_s) > 1e-6) & (np.asarray(r64.R_p) > 1e-6)
             dpsi = np.abs(np.asarray(e32.psi, np.float64) - np.asarray(e64.psi))[reflects]
             row["f32_max_abs_err_psi"] = max(row["f32_max_abs_err_psi"], float(dpsi.max(initial=0.0)))
-            for k, args in enumerate(((n64.real, n64.imag, d64, w64, c64), (n32.real, n32.imag, d32, w32, c32))):
-                g = grad(*args, inc)
+            for g, fwd in ((g64, fwd64), (g32, fwd32)):
                 row["nan_inf_grad_rev"] += int(sum(np.sum(~np.isfinite(np.asarray(x))) for x in g))
-                row["nan_inf_grad_fwd"] += int(not np.isfinite(float(fwd(args, inc))))
-                if k == 0:  # first-order effect of a 2-ulp relative change of every float32 input
-                    eps = float(np.finfo(np.float32).eps)
-                    sens = sum(np.abs(np.asarray(x) * np.asarray(gx)).reshape(per, -1).sum(-1) for x, gx in zip(args, g))
-                    excess = np.maximum(errR - 2 * eps * sens, 0)
-                    row["f32_max_excess_R"] = max(row["f32_max_excess_R"], float(excess.max()))
+                row["nan_inf_grad_fwd"] += int(not np.isfinite(float(fwd)))
+            # first-order effect of a 2-ulp relative change of every float32 input
+            eps = float(np.finfo(np.float32).eps)
+            sens = sum(np.abs(np.asarray(x) * np.asarray(gx)).reshape(per, -1).sum(-1)
+                       for x, gx in zip((n64.real, n64.imag, d64, w64, c64), g64))
+            excess = np.maximum(errR - 2 * eps * sens, 0)
+            row["f32_max_excess_R"] = max(row["f32_max_excess_R"], float(excess.max()))
             k = min(mp_samples // len(media), per)
             worst, compared = _reference_diff(reference_of(cat, L), inc, n64, d64, w64, c64, r64, k)
             row["mp_max_abs_diff"] = max(row["mp_max_abs_diff"], worst)
