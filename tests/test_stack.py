@@ -278,13 +278,12 @@ def test_thick_absorbers_do_not_overflow():
         ratio = np.array([1e1, 1e3, 1e5, 1e7])
         n = np.array([1.0, 1.5, 2.0 + 0.5j, 1.5], dtype=np.complex64 if dtype == np.float32 else np.complex128)
         d = np.stack([np.full(4, 80.0), ratio * 600 / 0.5], -1).astype(dtype)
-        res = jo.stack(n, d, dtype(600), dtype(0.8))
-        bulk = jo.stack(n[:3], d[:, :1], dtype(600), dtype(0.8))
+        res, bulk, g = jax.jit(lambda n, d: (jo.stack(n, d, dtype(600), dtype(0.8)), jo.stack(n[:3], d[:, :1], dtype(600), dtype(0.8)),
+                                             jax.grad(lambda d: jo.stack(n, d, dtype(600), dtype(0.8)).R.sum())(d)))(n, d)
         assert np.all(np.isfinite(np.asarray(res.R))) and np.all(np.asarray(res.T)[1:] == 0)
         # the same reflectance by two computations (the 4-medium stack and the 3-medium one: about 40
         # roundings each)
         np.testing.assert_allclose(np.asarray(res.R)[1:], np.asarray(bulk.R)[1:], rtol=64 * np.finfo(dtype).eps)
-        g = jax.grad(lambda d: jo.stack(n, d, dtype(600), dtype(0.8)).R.sum())(d)
         assert np.all(np.isfinite(np.asarray(g)))
 
 
@@ -736,9 +735,9 @@ def test_large_batches_in_blocks_agree_with_tmm(monkeypatch, inc):
 
     def run(block):
         monkeypatch.setattr(S, "_BLOCK", block)
-        res = jax.jit(lambda *a: jo.stack(*a, incoherent=inc))(*args)  # a new function: traced anew
         loss = lambda n, d, w: jnp.sum(jo.stack(n, d, w, args[3], incoherent=inc).R * jnp.linspace(0.5, 1.5, W)[None])
-        return res, jax.grad(loss, argnums=(0, 1, 2))(*args[:3])
+        # a new function: traced anew, with this block size; values and gradients in one program
+        return jax.jit(lambda *a: (jo.stack(*a, incoherent=inc), jax.grad(loss, argnums=(0, 1, 2))(*a[:3])))(*args)
 
     res, grads = run(7)
     compared = 0
