@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._runtime._compile import filter_jit
+from .._runtime._shard import from_blocks
 from ._index_model import _reflectance
 from ._index_result import FitResult
 from ._index_starts import _of_curve, _per_curve
@@ -365,16 +366,8 @@ def _fit_per_shard(shards, theta, R, w, eta1, y_init, kw):
     for k, s in enumerate(shards):
         args, kw_s = on_device(s)
         results[k] = _solve(*args, first=results[k], **kw_s)
-    P = jax.sharding.PartitionSpec
-    ax = sh.spec[0]
-
-    def assemble(*leaves):
-        shape = (R.shape[0],) + leaves[0].shape[1:]
-        target = jax.sharding.NamedSharding(sh.mesh, P(ax, *([None] * (len(shape) - 1))))
-        arrays = {s.device: leaf for s, leaf in zip(shards, leaves)}
-        ordered = [arrays[d] for d in target.addressable_devices_indices_map(shape)]
-        return jax.make_array_from_single_device_arrays(shape, target, ordered)
-
+    starts = [s.index[0].start or 0 for s in shards]
+    assemble = lambda *leaves: from_blocks(dict(zip(starts, leaves)), R.shape[0], sh.mesh, sh.spec[0])
     return jax.tree_util.tree_map(assemble, *results)
 
 

@@ -66,6 +66,7 @@ from .._films._sample import Sample
 from .._io._spectra import Spectra
 from .._runtime import _cache
 from .._runtime._options import known_options
+from .._runtime._shard import from_blocks
 
 if TYPE_CHECKING:
     from jax.sharding import Mesh
@@ -274,7 +275,8 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     states = [call(_stages.first_stage, blk) for blk in blocks]
     outs = [call(_stages.errors_stage if bool(np.all(np.asarray(st[3]))) else _stages.second_stage, blk + (st,))
             for blk, st in zip(blocks, states)]
-    out = outs[0] if mesh is None else jax.tree.map(lambda *a: _assemble(a, mesh), *outs)
+    out = outs[0] if mesh is None else jax.tree.map(
+        lambda *a: from_blocks({k * Bs: x for k, x in enumerate(a)}, Bp, mesh, mesh.axis_names[0]), *outs)
     x, sd, cov, corr, chi2r, conv, at_b, steps = out
     shp = lambda a: (a if Bp == B else a[:B]).reshape(batch + a.shape[1:])
     return StackFit(tuple(f.name for f in free), shp(x), shp(sd), shp(cov), shp(corr), shp(chi2r), shp(conv),
@@ -293,13 +295,6 @@ def _mesh_devices(mesh) -> list:
 def _put(a, device):
     """`a` (NumPy) on `device`, or on the default device where `device` is None."""
     return jnp.asarray(a) if device is None else jax.device_put(a, device)
-
-
-def _assemble(blocks, mesh):
-    """One array sharded along its first axis over `mesh` from the devices' blocks, in mesh order."""
-    shape = (sum(b.shape[0] for b in blocks),) + blocks[0].shape[1:]
-    spec = jax.sharding.PartitionSpec(mesh.axis_names[0], *([None] * (len(shape) - 1)))
-    return jax.make_array_from_single_device_arrays(shape, jax.sharding.NamedSharding(mesh, spec), list(blocks))
 
 
 @functools.lru_cache(maxsize=16)

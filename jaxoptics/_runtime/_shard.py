@@ -66,6 +66,19 @@ def shard_batch(x: ArrayLike, *, mesh: Mesh | None = None) -> tuple[Array, int]:
     return jax.device_put(x, batch_sharding(mesh, x.ndim)), n
 
 
+def from_blocks(blocks: dict[int, Array], length: int, mesh: Mesh, axis: str) -> Array:
+    """One array of `length` rows sharded along its first axis over `mesh`'s `axis` (its other
+    axes whole), from blocks of consecutive rows keyed by their first row, each computed on a
+    device of the mesh: every device holds the block of its rows (moved only where the device
+    holds a replica along another mesh axis). Only this process's devices take part."""
+    first = next(iter(blocks.values()))
+    shape = (length,) + first.shape[1:]
+    target = NamedSharding(mesh, P(axis, *([None] * (len(shape) - 1))))
+    parts = [jax.device_put(blocks[(index[0].start if index else None) or 0], device)
+             for device, index in target.addressable_devices_indices_map(shape).items()]
+    return jax.make_array_from_single_device_arrays(shape, target, parts)
+
+
 def _trim(out, n, total, keep_padding):
     if total == n or keep_padding:
         return out

@@ -101,6 +101,7 @@ def stress_stack(*, n_points=100_000, mp_samples=200, progress=None, seed=0, med
     rng = np.random.default_rng(seed)
     rows = []
     per = max(n_points // (len(CATEGORIES) * len(media)), 8)
+
     def loss(nr, ni, d, w, c, inc):
         return jnp.sum(jo.stack(jax.lax.complex(nr, ni), d, w, c, incoherent=inc).R)
 
