@@ -632,6 +632,34 @@ def test_jit_vmap_and_broadcasting():
     np.testing.assert_allclose(np.asarray(mapped.R_s)[:, :, 0].T, np.asarray(res.R_s), rtol=1e-14)
 
 
+def test_an_eager_call_is_one_compiled_program_and_a_traced_one_is_inlined():
+    """Called eagerly, `stack` and `ellipsometry` run the kernel as one compiled program (a first
+    call at a new shape compiles that program and a few operations of the checks, not each of the
+    kernel's hundreds of operations), and a second call at that shape compiles nothing; inside a
+    caller's trace the kernel is inlined: no nested call in the caller's jaxpr."""
+    compiles = []
+    listener = lambda event, duration, **kw: compiles.append(event) if event.endswith("backend_compile_duration") else None
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        rng = np.random.default_rng(5)
+        for f in (jo.stack, jo.ellipsometry):
+            for inc in ((), (1,)):
+                # a shape no other test uses, so that nothing is compiled already
+                n = np.concatenate([[1.0], 1.3 + rng.random(5) + 0.01j], dtype=complex)
+                args = (n, np.array([90.0, 3e3, 40.0, 70.0]), np.linspace(400, 700, 13), np.full(13, 0.6))
+                del compiles[:]
+                jax.block_until_ready(f(*args, incoherent=inc))
+                assert 1 <= len(compiles) <= 8, (f.__name__, inc, len(compiles))
+                del compiles[:]
+                jax.block_until_ready(f(args[0] * 1.01, *args[1:], incoherent=inc))
+                assert compiles == [], (f.__name__, inc)
+                eqns = jax.make_jaxpr(lambda *a: f(*a, incoherent=inc))(*args).jaxpr.eqns
+                names = {str(e.params.get("name")) for e in eqns if e.primitive.name in ("pjit", "jit")}
+                assert not any(name.endswith("_program") for name in names), (f.__name__, inc, names)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+
+
 @pytest.mark.parametrize("kwargs,match", [
     (dict(n=np.array([1.0, 1.5, 2.0]), d=np.array([10.0, 20.0])), r"d must have shape \(\.\.\., L-2\)"),
     (dict(n=np.array([1.0]), d=np.zeros(0)), "L >= 2"),

@@ -37,6 +37,7 @@ R. M. A. Azzam, N. M. Bashara, *Ellipsometry and Polarized Light*.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import TYPE_CHECKING
 
@@ -157,16 +158,21 @@ def _prepare(n, d, wavelength, cos_i, incoherent):
     batch = V.broadcast_shapes(n=jnp.shape(n)[:-1], d=jnp.shape(d)[:-1], wavelength=jnp.shape(wavelength),
                                cos_i=jnp.shape(cos_i))
     dt = V.float_dtype(n, d, wavelength, cos_i)
+    return n, d, wavelength, cos_i, tuple(sorted(int(j) + 1 for j in inc)), dt, batch
+
+
+def _padded(n, d, wavelength, cos_i, dt, batch):
+    """The inputs in the computation's dtypes (`n` complex, a `k` within rounding below 0 set to 0)
+    with their ranks padded to the batch's (size-1 axes), sizes not: the per-layer arrays are
+    broadcast inside the scan step, so no (layers x points) array is materialized."""
     cdt = V.complex_dtype(dt)
-    # ranks padded to the batch's (size-1 axes), sizes not: the per-layer arrays are broadcast
-    # inside the scan step, so no (layers x points) array is materialized
+
     def pad(x, dtype, core):
         x = jnp.asarray(x, dtype)
         return x.reshape((1,) * (len(batch) + core - x.ndim) + x.shape)
 
     n, d = V.without_rounding_k(pad(n, cdt, 1)), pad(d, dt, 1)
-    wavelength, cos_i = pad(wavelength, dt, 0), pad(cos_i, dt, 0)
-    return n, d, wavelength, cos_i, tuple(sorted(int(j) + 1 for j in inc)), dt, batch
+    return n, d, pad(wavelength, dt, 0), pad(cos_i, dt, 0)
 
 
 def _valid(n, d, wavelength, cos_i):
@@ -192,7 +198,9 @@ def stack(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batch L-2"]
       that are incoherent: thick layers where intensities add and phases do not (tmm's `'i'`).
 
     Leading axes of all four broadcast together; the computation runs in the floating dtype of the
-    inputs (`complex64` for float32, `complex128` for float64).
+    inputs (`complex64` for float32, `complex128` for float64). Called eagerly, the kernel runs as
+    one compiled program, compiled on the first call for each shape, dtype and `incoherent`
+    layout; inside a caller's `jit`, `vmap` or derivative it is inlined into the caller's program.
 
     **Returns:** a `StackResult` (see there): `R_s, R_p, T_s, T_p`, `A_s, A_p` per inner layer,
     the complex amplitudes `r_s, r_p, t_s, t_p` (None with incoherent layers), and `rp_rs`.
@@ -213,8 +221,18 @@ def stack(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batch L-2"]
 
     Reference: Born & Wolf, sec. 1.6; Byrnes, arXiv:1603.02720.
     """
-    n, d, wavelength, cos_i, inc, _, batch = _prepare(n, d, wavelength, cos_i, incoherent)
-    return _chunked(lambda n_, d_, w_, c_: _stack(n_, d_, w_, c_, inc), (n, d, wavelength, cos_i), batch)
+    n, d, wavelength, cos_i, inc, dt, batch = _prepare(n, d, wavelength, cos_i, incoherent)
+    return _stack_program(n, d, wavelength, cos_i, inc=inc, dtype=dt, batch=batch, block=_BLOCK)
+
+
+@functools.partial(jax.jit, static_argnames=("inc", "dtype", "batch", "block"), inline=True)
+def _stack_program(n, d, wavelength, cos_i, *, inc, dtype, batch, block):
+    """`stack` after its checks, as one compiled program (as `jax.numpy`'s functions are): an
+    eager call compiles it once per shape, dtype and layout instead of dispatching each of the
+    kernel's hundreds of operations on its own, and inside a caller's `jit` it is inlined. `block`
+    is `_BLOCK`, passed in so that a program is keyed by the block size it was traced with."""
+    n, d, wavelength, cos_i = _padded(n, d, wavelength, cos_i, dtype, batch)
+    return _chunked(lambda n_, d_, w_, c_: _stack(n_, d_, w_, c_, inc), (n, d, wavelength, cos_i), batch, block)
 
 
 # Points per block of `_chunked`. The layer scan streams its carry (the tangential fields of both
@@ -225,8 +243,8 @@ def stack(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batch L-2"]
 _BLOCK = 32768
 
 
-def _chunked(f, args, batch):
-    """`f(*args)` over a large batch in blocks of `_BLOCK` points (a `lax.map` over blocks).
+def _chunked(f, args, batch, block_size):
+    """`f(*args)` over a large batch in blocks of `block_size` points (a `lax.map` over blocks).
 
     `args` have the rank of `batch` plus trailing core axes, with size-1 axes where they
     broadcast. `f` takes such arguments and returns a pytree of arrays with the batch shape of its
@@ -239,11 +257,11 @@ def _chunked(f, args, batch):
     batch, which the backward pass would stream through memory (measured: the gradient costs
     3x the forward pass this way, 7x without)."""
     N = math.prod(batch)
-    if N <= _BLOCK:
+    if N <= block_size:
         return f(*args)
-    nb = -(-N // _BLOCK)
+    nb = -(-N // block_size)
     nr = len(batch)
-    # per argument: its blocks (nb, _BLOCK, ...), or None where it has one point and is passed whole
+    # per argument: its blocks (nb, block_size, ...), or None where it has one point (passed whole)
     blocks = []
     for x in args:
         core = x.shape[nr:]
@@ -251,16 +269,16 @@ def _chunked(f, args, batch):
             blocks.append(None)
         else:
             x = jnp.broadcast_to(x, batch + core).reshape((N,) + core)
-            x = jnp.concatenate([x, jnp.broadcast_to(x[-1:], (nb * _BLOCK - N,) + core)], axis=0)
-            blocks.append(x.reshape((nb, _BLOCK) + core))
+            x = jnp.concatenate([x, jnp.broadcast_to(x[-1:], (nb * block_size - N,) + core)], axis=0)
+            blocks.append(x.reshape((nb, block_size) + core))
     mapped = [b for b in blocks if b is not None]
 
-    def block(xs):
+    def one_block(xs):
         it = iter(xs)
         return f(*(x.reshape((1,) + x.shape[nr:]) if b is None else next(it) for x, b in zip(args, blocks)))
 
-    out = jax.lax.map(jax.checkpoint(block), mapped)
-    unblock = lambda y: y.reshape((nb * _BLOCK,) + y.shape[2:])[:N].reshape(batch + y.shape[2:])
+    out = jax.lax.map(jax.checkpoint(one_block), mapped)
+    unblock = lambda y: y.reshape((nb * block_size,) + y.shape[2:])[:N].reshape(batch + y.shape[2:])
     return jax.tree.map(unblock, out)
 
 
@@ -325,7 +343,14 @@ def ellipsometry(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batc
     returned as 0 (gradient 0); `psi` has a kink there and its gradient is the one from `r_p -> 0`
     (0). NaN for out-of-domain elements, as `stack`.
     """
-    res = stack(n, d, wavelength, cos_i, incoherent=incoherent)
+    n, d, wavelength, cos_i, inc, dt, batch = _prepare(n, d, wavelength, cos_i, incoherent)
+    return _ellipsometry_program(n, d, wavelength, cos_i, inc=inc, dtype=dt, batch=batch, block=_BLOCK)
+
+
+@functools.partial(jax.jit, static_argnames=("inc", "dtype", "batch", "block"), inline=True)
+def _ellipsometry_program(n, d, wavelength, cos_i, *, inc, dtype, batch, block):
+    """`ellipsometry` after its checks, one compiled program (see `_stack_program`)."""
+    res = _stack_program(n, d, wavelength, cos_i, inc=inc, dtype=dtype, batch=batch, block=block)
     return _psi_delta(res.R_s, res.R_p, res.rp_rs)
 
 
