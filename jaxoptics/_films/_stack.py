@@ -155,16 +155,17 @@ def _prepare(n, d, wavelength, cos_i, incoherent):
     if len(set(inc)) != len(inc):
         raise ValueError(f"incoherent has a repeated position: {inc}")
     _check_concrete(n, d, wavelength, cos_i)
-    batch = V.broadcast_shapes(n=jnp.shape(n)[:-1], d=jnp.shape(d)[:-1], wavelength=jnp.shape(wavelength),
-                               cos_i=jnp.shape(cos_i))
-    dt = V.float_dtype(n, d, wavelength, cos_i)
-    return n, d, wavelength, cos_i, tuple(sorted(int(j) + 1 for j in inc)), dt, batch
+    V.broadcast_shapes(n=jnp.shape(n)[:-1], d=jnp.shape(d)[:-1], wavelength=jnp.shape(wavelength), cos_i=jnp.shape(cos_i))
+    return n, d, wavelength, cos_i, tuple(sorted(int(j) + 1 for j in inc))
 
 
-def _padded(n, d, wavelength, cos_i, dt, batch):
+def _padded(n, d, wavelength, cos_i):
     """The inputs in the computation's dtypes (`n` complex, a `k` within rounding below 0 set to 0)
     with their ranks padded to the batch's (size-1 axes), sizes not: the per-layer arrays are
-    broadcast inside the scan step, so no (layers x points) array is materialized."""
+    broadcast inside the scan step, so no (layers x points) array is materialized. Also returns
+    the batch shape."""
+    batch = jnp.broadcast_shapes(jnp.shape(n)[:-1], jnp.shape(d)[:-1], jnp.shape(wavelength), jnp.shape(cos_i))
+    dt = V.float_dtype(n, d, wavelength, cos_i)
     cdt = V.complex_dtype(dt)
 
     def pad(x, dtype, core):
@@ -172,7 +173,7 @@ def _padded(n, d, wavelength, cos_i, dt, batch):
         return x.reshape((1,) * (len(batch) + core - x.ndim) + x.shape)
 
     n, d = V.without_rounding_k(pad(n, cdt, 1)), pad(d, dt, 1)
-    return n, d, pad(wavelength, dt, 0), pad(cos_i, dt, 0)
+    return n, d, pad(wavelength, dt, 0), pad(cos_i, dt, 0), batch
 
 
 def _valid(n, d, wavelength, cos_i):
@@ -221,17 +222,17 @@ def stack(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batch L-2"]
 
     Reference: Born & Wolf, sec. 1.6; Byrnes, arXiv:1603.02720.
     """
-    n, d, wavelength, cos_i, inc, dt, batch = _prepare(n, d, wavelength, cos_i, incoherent)
-    return _stack_program(n, d, wavelength, cos_i, inc=inc, dtype=dt, batch=batch, block=_BLOCK)
+    n, d, wavelength, cos_i, inc = _prepare(n, d, wavelength, cos_i, incoherent)
+    return _stack_program(n, d, wavelength, cos_i, inc=inc, block=_BLOCK)
 
 
-@functools.partial(jax.jit, static_argnames=("inc", "dtype", "batch", "block"), inline=True)
-def _stack_program(n, d, wavelength, cos_i, *, inc, dtype, batch, block):
+@functools.partial(jax.jit, static_argnames=("inc", "block"), inline=True)
+def _stack_program(n, d, wavelength, cos_i, *, inc, block):
     """`stack` after its checks, as one compiled program (as `jax.numpy`'s functions are): an
     eager call compiles it once per shape, dtype and layout instead of dispatching each of the
     kernel's hundreds of operations on its own, and inside a caller's `jit` it is inlined. `block`
     is `_BLOCK`, passed in so that a program is keyed by the block size it was traced with."""
-    n, d, wavelength, cos_i = _padded(n, d, wavelength, cos_i, dtype, batch)
+    n, d, wavelength, cos_i, batch = _padded(n, d, wavelength, cos_i)
     return _chunked(lambda n_, d_, w_, c_: _stack(n_, d_, w_, c_, inc), (n, d, wavelength, cos_i), batch, block)
 
 
@@ -343,14 +344,14 @@ def ellipsometry(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batc
     returned as 0 (gradient 0); `psi` has a kink there and its gradient is the one from `r_p -> 0`
     (0). NaN for out-of-domain elements, as `stack`.
     """
-    n, d, wavelength, cos_i, inc, dt, batch = _prepare(n, d, wavelength, cos_i, incoherent)
-    return _ellipsometry_program(n, d, wavelength, cos_i, inc=inc, dtype=dt, batch=batch, block=_BLOCK)
+    n, d, wavelength, cos_i, inc = _prepare(n, d, wavelength, cos_i, incoherent)
+    return _ellipsometry_program(n, d, wavelength, cos_i, inc=inc, block=_BLOCK)
 
 
-@functools.partial(jax.jit, static_argnames=("inc", "dtype", "batch", "block"), inline=True)
-def _ellipsometry_program(n, d, wavelength, cos_i, *, inc, dtype, batch, block):
+@functools.partial(jax.jit, static_argnames=("inc", "block"), inline=True)
+def _ellipsometry_program(n, d, wavelength, cos_i, *, inc, block):
     """`ellipsometry` after its checks, one compiled program (see `_stack_program`)."""
-    res = _stack_program(n, d, wavelength, cos_i, inc=inc, dtype=dtype, batch=batch, block=block)
+    res = _stack_program(n, d, wavelength, cos_i, inc=inc, block=block)
     return _psi_delta(res.R_s, res.R_p, res.rp_rs)
 
 
