@@ -160,10 +160,9 @@ def _prepare(n, d, wavelength, cos_i, incoherent):
 
 
 def _padded(n, d, wavelength, cos_i):
-    """The inputs in the computation's dtypes (`n` complex, a `k` within rounding below 0 set to 0)
-    with their ranks padded to the batch's (size-1 axes), sizes not: the per-layer arrays are
-    broadcast inside the scan step, so no (layers x points) array is materialized. Also returns
-    the batch shape."""
+    """The inputs in the computation's dtypes (`n` complex) with their batch ranks padded to the batch's (size-1 axes), sizes not: per-layer arrays of one
+    point are broadcast inside the scan step, so no (layers x points) array is materialized for
+    them. Also returns the batch shape."""
     batch = jnp.broadcast_shapes(jnp.shape(n)[:-1], jnp.shape(d)[:-1], jnp.shape(wavelength), jnp.shape(cos_i))
     dt = V.float_dtype(n, d, wavelength, cos_i)
     cdt = V.complex_dtype(dt)
@@ -172,14 +171,14 @@ def _padded(n, d, wavelength, cos_i):
         x = jnp.asarray(x, dtype)
         return x.reshape((1,) * (len(batch) + core - x.ndim) + x.shape)
 
-    n, d = V.without_rounding_k(pad(n, cdt, 1)), pad(d, dt, 1)
-    return n, d, pad(wavelength, dt, 0), pad(cos_i, dt, 0), batch
+    return pad(n, cdt, 1), pad(d, dt, 1), pad(wavelength, dt, 0), pad(cos_i, dt, 0), batch
 
 
-def _valid(n, d, wavelength, cos_i):
-    nr, ni = jnp.real(n), jnp.imag(n)
-    ok = jnp.all((nr > 0) & (nr < jnp.inf) & (ni >= 0) & (ni < jnp.inf), axis=-1) & (ni[..., 0] == 0)
-    ok &= jnp.all((d >= 0) & (d < jnp.inf), axis=-1)
+def _valid(nn, dd, wavelength, cos_i):
+    """Elements with every input in the domain (`nn`, `dd` layer axis first)."""
+    nr, ni = jnp.real(nn), jnp.imag(nn)
+    ok = jnp.all((nr > 0) & (nr < jnp.inf) & (ni >= 0) & (ni < jnp.inf), axis=0) & (ni[0] == 0)
+    ok &= jnp.all((dd >= 0) & (dd < jnp.inf), axis=0)
     ok &= (wavelength > 0) & (wavelength < jnp.inf) & (jnp.abs(cos_i) < jnp.inf)
     return ok
 
@@ -233,7 +232,8 @@ def _stack_program(n, d, wavelength, cos_i, *, inc, block):
     kernel's hundreds of operations on its own, and inside a caller's `jit` it is inlined. `block`
     is `_BLOCK`, passed in so that a program is keyed by the block size it was traced with."""
     n, d, wavelength, cos_i, batch = _padded(n, d, wavelength, cos_i)
-    return _chunked(lambda n_, d_, w_, c_: _stack(n_, d_, w_, c_, inc), (n, d, wavelength, cos_i), batch, block)
+    return _chunked(lambda n_, d_, w_, c_: _stack(n_, d_, w_, c_, inc), ((n, 1), (d, 1), (wavelength, 0), (cos_i, 0)),
+                    batch, block)
 
 
 # Points per block of `_chunked`. The layer scan streams its carry (the tangential fields of both
@@ -245,57 +245,68 @@ _BLOCK = 32768
 
 
 def _chunked(f, args, batch, block_size):
-    """`f(*args)` over a large batch in blocks of `block_size` points (a `lax.map` over blocks).
+    """`f(*args)` over a large batch in blocks of at most `block_size` points (a `lax.map` over
+    blocks), with each argument's core axes moved first.
 
-    `args` have the rank of `batch` plus trailing core axes, with size-1 axes where they
-    broadcast. `f` takes such arguments and returns a pytree of arrays with the batch shape of its
-    arguments plus trailing core axes. Arguments with one point are passed whole to every block;
-    the others are broadcast to the batch, flattened and cut into blocks (the last padded by
-    repeating the final point, whose results are dropped).
+    `args` are pairs `(x, core)`: `x` has the rank of `batch` followed by `core` (0 or 1) axes
+    (the layer axis), with size-1 axes where it broadcasts. `f` takes arrays with the core axis
+    first, then batch axes, and returns a pytree of arrays with the batch shape of its arguments
+    plus trailing core axes. Arguments with one point are passed whole to every block; the others
+    are broadcast to the batch, flattened and cut into `nb = ceil(N / block_size)` blocks of
+    `ceil(N / nb)` points (the last padded by repeating the final point, fewer than `nb` points in
+    all, whose results are dropped). An argument given per point is transposed once, block by
+    block (`(nb, points, L)` to `(nb, L, points)`): each block's layer rows are then contiguous
+    for the layer scan.
 
     Each block is rematerialized in the backward pass (`jax.checkpoint`): reverse mode then keeps
     one block's residuals at a time, in cache, instead of every layer's residuals for the whole
     batch, which the backward pass would stream through memory (measured: the gradient costs
     3x the forward pass this way, 7x without)."""
     N = math.prod(batch)
-    if N <= block_size:
-        return f(*args)
-    nb = -(-N // block_size)
     nr = len(batch)
-    # per argument: its blocks (nb, block_size, ...), or None where it has one point (passed whole)
+    first = lambda x, k: jnp.moveaxis(x, -1, 0) if k else x
+    if N <= block_size:
+        return f(*(first(x, k) for x, k in args))
+    nb = -(-N // block_size)
+    bs = -(-N // nb)
+    # per argument: its blocks (nb, core..., bs), or None where it has one point (passed whole)
     blocks = []
-    for x in args:
+    for x, k in args:
         core = x.shape[nr:]
         if math.prod(x.shape[:nr]) == 1:
             blocks.append(None)
         else:
             x = jnp.broadcast_to(x, batch + core).reshape((N,) + core)
-            x = jnp.concatenate([x, jnp.broadcast_to(x[-1:], (nb * block_size - N,) + core)], axis=0)
-            blocks.append(x.reshape((nb, block_size) + core))
+            if nb * bs > N:
+                x = jnp.concatenate([x, jnp.broadcast_to(x[-1:], (nb * bs - N,) + core)], axis=0)
+            x = x.reshape((nb, bs) + core)
+            blocks.append(x)
     mapped = [b for b in blocks if b is not None]
 
-    def one_block(xs):
-        it = iter(xs)
-        return f(*(x.reshape((1,) + x.shape[nr:]) if b is None else next(it) for x, b in zip(args, blocks)))
+    def one_block(ys):
+        it = iter(ys)
+        return f(*(first(x.reshape((1,) + x.shape[nr:]) if b is None else next(it), k)
+                   for (x, k), b in zip(args, blocks)))
 
     out = jax.lax.map(jax.checkpoint(one_block), mapped)
-    unblock = lambda y: y.reshape((nb * block_size,) + y.shape[2:])[:N].reshape(batch + y.shape[2:])
+    unblock = lambda y: y.reshape((nb * bs,) + y.shape[2:])[:N].reshape(batch + y.shape[2:])
     return jax.tree.map(unblock, out)
 
 
-def _stack(n, d, wavelength, cos_i, inc):
-    batch = jnp.broadcast_shapes(n.shape[:-1], d.shape[:-1], wavelength.shape, cos_i.shape)
-    L = n.shape[-1]
-    cdt = n.dtype
-    valid = _valid(n, d, wavelength, cos_i)
+def _stack(nn, dd, wavelength, cos_i, inc):
+    """The kernel on `_padded`'s arrays: `nn` (media) and `dd` (inner layers) with the layer axis
+    first, not broadcast to the batch (the scan step does that). A `k` within rounding below 0 is
+    set to 0 here, block by block (on the whole batch, XLA fuses it into the transpose of a
+    per-point `n` and then transposes twice)."""
+    nn = _materialize_parts(V.without_rounding_k(nn))
+    batch = jnp.broadcast_shapes(nn.shape[1:], dd.shape[1:], wavelength.shape, cos_i.shape)
+    L = nn.shape[0]
+    cdt = nn.dtype
+    valid = _valid(nn, dd, wavelength, cos_i)
     c = jnp.where(cos_i < 0, -cos_i, cos_i)  # |cos_i|, derivative +1 at 0 (as in fresnel)
-    n0 = jnp.real(n[..., 0])
+    n0 = jnp.real(nn[0])
     ki = jnp.broadcast_to((n0 * c).astype(cdt), batch)
     n0c = n0.astype(cdt)
-    # per medium, layer axis first (not broadcast to the batch: the scan step does that)
-    first = lambda x: jnp.moveaxis(x, -1, 0)
-    nn = first(n)
-    dd = first(d)  # inner layers only: dd[j - 1]
     k0 = 2 * jnp.pi / wavelength
     kz_sq = _KzSq(ki, n0c)  # k_z^2 formed as in `fresnel`
     kz_exit = _materialize_parts(decaying_sqrt(kz_sq(nn[L - 1])))
