@@ -80,7 +80,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from .._core._numerics import _abs2, _materialize_parts, decaying_sqrt
+from .._core._numerics import _abs2, _materialize_parts, decaying_sqrt, materialize_tangent
 from .._interface._fresnel_terms import _kt_squared
 from ._elementary import _DS_SERIES_MAX, _decaying_root, _ds_dq_series, _sincos
 
@@ -311,7 +311,10 @@ def _tangents(primals, tangents, phases, residuals, *, recorded: bool):
         q = _kt_squared(ki, n0, nj)[0]
         gam = _ds_dq(c, s, q, a)
         dnsq = 2 * nj * dnj
-        dq = dnsq + dm
+        # stored once (a division by 1): in the transposed (reverse-mode) step its cotangent, a sum
+        # over the four entries' terms, then feeds the cotangents of the layer's index and of the
+        # incidence (carried) from memory instead of being recomputed in each of their loops
+        dq = materialize_tangent(dnsq + dm, q)
         qs = q * s
         dc = -_rmul(0.5 * a, s) * dq - qs * da
         ds = gam * dq + c * da
