@@ -792,6 +792,33 @@ def test_large_batches_in_blocks_agree_with_tmm(monkeypatch, inc):
         np.testing.assert_allclose(np.asarray(g), np.asarray(g1), rtol=1e-11, atol=1e-13)
 
 
+def test_blocks_are_equal_and_per_point_layers_arrive_layer_first():
+    """`_chunked` cuts N points into ceil(N / block) blocks of ceil(N / blocks) points (100 points
+    with blocks of at most 32: four of 25, none padded), hands a per-point argument to the kernel
+    with its layer axis first and an argument of one point whole, and puts the results back in
+    order."""
+    import jaxoptics._films._stack as S
+
+    x = np.arange(100.0).reshape(4, 25)  # per point
+    lay = np.arange(300.0).reshape(4, 25, 3)  # per point, 3 layers
+    one = np.array([[[7.0, 8.0, 9.0]]])  # one point, 3 layers
+    seen = []
+
+    def f(x, lay, one):
+        seen.append((x.shape, lay.shape, one.shape))
+        return {"x": x + 0 * lay[0], "first_layer": lay[0], "sum_one": jnp.broadcast_to(jnp.sum(one), x.shape)}
+
+    out = S._chunked(f, ((x, 0), (lay, 1), (one, 1)), (4, 25), 32)
+    assert seen == [((25,), (3, 25), (3, 1))]
+    np.testing.assert_array_equal(np.asarray(out["x"]), x)
+    np.testing.assert_array_equal(np.asarray(out["first_layer"]), lay[..., 0])
+    np.testing.assert_array_equal(np.asarray(out["sum_one"]), 24.0)
+    seen.clear()
+    out = S._chunked(f, ((x.ravel()[:45], 0), (lay.reshape(100, 3)[:45], 1), (one[0], 1)), (45,), 7)
+    assert seen == [((7,), (3, 7), (3, 1))]  # 7 blocks of 7: 4 padded points
+    np.testing.assert_array_equal(np.asarray(out["first_layer"]), lay.reshape(100, 3)[:45, 0])
+
+
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_layer_entries_against_mpmath(dtype):
     """A layer's scaled matrix entries (`_layer_cs`: c = g cos(delta), s = g a sin(delta) / delta,

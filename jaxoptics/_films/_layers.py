@@ -117,7 +117,9 @@ def _group(kz0, n0, kze, ne, nn, dd, k0, kz_sq, *, real_incident: bool):
         # absorber behind, that difference loses everything in float32)
         G = jnp.exp(-jnp.imag(S_all))  # (for the amplitudes t only: dropped from the program without them)
         X_last = jnp.exp(-2 * jnp.imag(S_all))  # G^2
-        prefix = jnp.concatenate([jnp.zeros_like(im_phase[:1]), jnp.cumsum(im_phase[:-1], axis=0)], axis=0)
+        # (an associative scan: XLA's CPU backend computes `cumsum` as a windowed reduction, m^2 adds)
+        prefix = jnp.concatenate([jnp.zeros_like(im_phase[:1]), jax.lax.associative_scan(jnp.add, im_phase[:-1], axis=0)],
+                                 axis=0)
         X = jnp.exp(-2 * prefix)
     else:
         w0s, w0p = v_s, v_p

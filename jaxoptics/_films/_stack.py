@@ -222,7 +222,7 @@ def stack(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batch L-2"]
     Reference: Born & Wolf, sec. 1.6; Byrnes, arXiv:1603.02720.
     """
     n, d, wavelength, cos_i, inc = _prepare(n, d, wavelength, cos_i, incoherent)
-    return _stack_program(n, d, wavelength, cos_i, inc=inc, block=_BLOCK)
+    return _stack_program(n, d, wavelength, cos_i, inc=inc, block=_block_size())
 
 
 @functools.partial(jax.jit, static_argnames=("inc", "block"), inline=True)
@@ -230,18 +230,27 @@ def _stack_program(n, d, wavelength, cos_i, *, inc, block):
     """`stack` after its checks, as one compiled program (as `jax.numpy`'s functions are): an
     eager call compiles it once per shape, dtype and layout instead of dispatching each of the
     kernel's hundreds of operations on its own, and inside a caller's `jit` it is inlined. `block`
-    is `_BLOCK`, passed in so that a program is keyed by the block size it was traced with."""
+    is `_block_size()`, passed in so that a program is keyed by the block size it was traced with."""
     n, d, wavelength, cos_i, batch = _padded(n, d, wavelength, cos_i)
     return _chunked(lambda n_, d_, w_, c_: _stack(n_, d_, w_, c_, inc), ((n, 1), (d, 1), (wavelength, 0), (cos_i, 0)),
                     batch, block)
 
 
-# Points per block of `_chunked`. The layer scan streams its carry (the tangential fields of both
-# polarizations) and the per-layer terms through memory once per layer; over a block of this many
-# points they stay in the CPU's caches. On a 10-layer stack (float64, 2-core EPYC, 10^6 points)
-# blocks of 16k-64k points take half the time of one block of 10^6; below about 4k points per
-# block the per-operation overhead of XLA's loops dominates.
+# Points per block of `_chunked` on the CPU. The layer scan streams its carry (the tangential
+# fields of both polarizations) and the per-layer terms through memory once per layer; over a
+# block of this many points they stay in the CPU's caches. On a 10-layer stack (float64, 2-core
+# EPYC, 10^6 points) blocks of 16k-64k points take half the time of one block of 10^6; below
+# about 4k points per block the per-operation overhead of XLA's loops dominates.
 _BLOCK = 32768
+# On an accelerator (GPU, TPU): each step of the layer scan is at least one kernel launch of a few
+# microseconds, whatever the block's size, so blocks are as large as memory comfortably allows
+# (2^20 points: arrays of 16 MB in complex128).
+_BLOCK_ACCELERATOR = 1 << 20
+
+
+def _block_size():
+    """Points per block for the default backend: `_BLOCK` on the CPU, `_BLOCK_ACCELERATOR` elsewhere."""
+    return _BLOCK if jax.default_backend() == "cpu" else _BLOCK_ACCELERATOR
 
 
 def _chunked(f, args, batch, block_size):
@@ -356,7 +365,7 @@ def ellipsometry(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batc
     (0). NaN for out-of-domain elements, as `stack`.
     """
     n, d, wavelength, cos_i, inc = _prepare(n, d, wavelength, cos_i, incoherent)
-    return _ellipsometry_program(n, d, wavelength, cos_i, inc=inc, block=_BLOCK)
+    return _ellipsometry_program(n, d, wavelength, cos_i, inc=inc, block=_block_size())
 
 
 @functools.partial(jax.jit, static_argnames=("inc", "block"), inline=True)

@@ -13,18 +13,19 @@ from pathlib import Path
 from ._measure import machine_description, run_stamp
 from .bench_fit import bench_devices, bench_fit_in_subprocess, devices_table, fit_table
 from .bench_kernels import bench_fresnel_ratio, bench_kernels, bench_limits, fresnel_ratio_table, kernels_table, limits_table, pareto_chart, scaling_table
+from .bench_stack import LAYERS, stack_chart
 
 
 def _sections(sections):
     """(name, title, measure, table) of the requested sections after "kernels", in report order."""
     from .bench_latency import bench_latency, latency_table
-    from .bench_stack import LAYERS, bench_stack, stack_table
+    from .bench_stack import bench_stack, stack_table
     from .bench_stack_fit import bench_stack_fit, stack_fit_table
 
     known = [
         ("fit", "Index fits: 90 angles per curve, float64, noise 1e-3", bench_fit_in_subprocess, fit_table),
-        ("stack", f"Thin-film stacks: {LAYERS} coherent layers on Si, R and T of s and p, (wavelength, angle) points",
-         bench_stack, stack_table),
+        ("stack", f"Thin-film stacks: {', '.join(map(str, LAYERS))} coherent layers on Si, (wavelength, angle) points; "
+         "indices shared or per point, reflectances or every output, forward and gradient", bench_stack, stack_table),
         ("stackfit", "Film fits over a wafer map: psi/delta, 200 wavelengths x 3 angles per spectrum; thickness and Cauchy "
          "A, B, C free", bench_stack_fit, stack_fit_table),
         ("latency", "Latency: from the command to the answer (fresh processes)", bench_latency, latency_table),
@@ -45,7 +46,8 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "stackfit", "device
     report = {"machine": machine_description(), "quick": quick, "date": run_stamp()}
     cmd = "python -m jaxoptics bench" + (" --quick" if quick else "") + f" --sections {','.join(sections)}"
     md = [f"Measured by `{cmd}` on {report['date']}. Machine: {report['machine']}.", ""]
-    total = (6 * ("fit" in sections) + 3 * ("devices" in sections) + 25 * ("kernels" in sections) + 3 * ("stack" in sections) + 5 * ("stackfit" in sections)
+    total = (6 * ("fit" in sections) + 3 * ("devices" in sections) + 25 * ("kernels" in sections) + (1 + 2 * len(LAYERS)) * ("stack" in sections)
+             + 5 * ("stackfit" in sections)
              + 9 * ("latency" in sections))
     with tqdm(total=total, desc="bench", unit="step") as bar:
         if "kernels" in sections:
@@ -67,11 +69,13 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "stackfit", "device
             rows = measure(quick=quick, progress=bar)
             report[name] = rows
             md += [f"### {title}", "", table(rows), ""]
+            if name == "stack":
+                stack_chart(rows, out / "stack.png")
     text = "\n".join(md)
     (out / "bench.md").write_text(text + "\n")
     (out / "bench.json").write_text(json.dumps(report, indent=2))
     print(text)
-    chart = f", {out / 'pareto.png'}" if "kernels" in sections else ""
+    chart = (f", {out / 'pareto.png'}" if "kernels" in sections else "") + (f", {out / 'stack.png'}" if "stack" in sections else "")
     print(f"\nwritten: {out / 'bench.md'}, {out / 'bench.json'}{chart}")
     return report
 

@@ -1,8 +1,25 @@
-"""The `stack` section of `python -m jaxoptics bench`: a 10-layer coherent stack over (wavelength,
-angle) points, against tmm in a Python loop and a vectorized NumPy transfer-matrix baseline.
+"""The `stack` section of `python -m jaxoptics bench`: coherent stacks of 1, 10 and 100 layers over
+(wavelength, angle) points, in the cases users have, against NumPy and tmm, and against a floor.
 
-All three compute R and T of both polarizations of the same stack at the same points, measured
-in one run: medians over repeats, the first call's extra time reported as compile time.
+Cases, each measured in one run (medians over repeats, the first call's extra time reported as
+compile time):
+
+- indices **shared** by all points (`n` of shape `(L+2,)`) or **per point** (`(N, L+2)`: what a
+  dispersive material gives, one index per wavelength, and what a fit whose indices depend on
+  the wavelength passes);
+- outputs: the **reflectances** `R_s, R_p` alone, or **all** of `StackResult` (`R`, `T`, the
+  absorption in each layer, the amplitudes `r`, `t` and `rp_rs`);
+- float64 and float32; the forward pass and the **gradient** of `sum(R)` in every `n`, `k` and `d`.
+
+Peers: a vectorized NumPy transcription (characteristic matrices over all points at once, as a
+textbook writes them) computing the same outputs, and tmm (`coh_tmm`, one point at a time, s and
+p, float64).
+
+The floor: the floating-point operations per point that the algorithm needs (`flops_per_point`,
+counted operation by operation from `jaxoptics._films._layers`), divided by the throughput this
+machine reaches in XLA on a plain fused loop of complex multiply-adds over the same number of
+points (`fma_throughput`). A case's "x floor" is its time over that; it is what is left to gain
+by any reformulation that keeps the arithmetic.
 """
 
 from __future__ import annotations
@@ -13,133 +30,288 @@ import numpy as np
 
 from ._measure import timeit
 
-LAYERS = 10
+LAYERS = (1, 10, 100)
 
 
-def example_stack(dtype=np.float64):
-    """A 10-layer coherent stack on silicon: alternating TiO2/SiO2-like films, one absorbing."""
+def example_stack(dtype=np.float64, layers=10):
+    """A coherent stack on silicon: alternating TiO2/SiO2-like films (the fourth weakly absorbing),
+    thicknesses 40-160 nm."""
     rng = np.random.default_rng(0)
-    inner = np.where(np.arange(LAYERS) % 2 == 0, 2.35, 1.46) + 0j
-    inner[3] = 2.0 + 0.05j  # a weakly absorbing film
+    inner = np.where(np.arange(layers) % 2 == 0, 2.35, 1.46) + 0j
+    if layers > 3:
+        inner[3] = 2.0 + 0.05j
     n = np.r_[1.0, inner, 3.9 + 0.02j]
-    d = rng.uniform(40, 160, LAYERS)
+    d = rng.uniform(40, 160, layers)
     cdt = np.complex128 if dtype == np.float64 else np.complex64
     return n.astype(cdt), d.astype(dtype)
 
 
+def per_point(n, wl):
+    """The indices of `n` at each point, `(N, L+2)`: a mild normal dispersion, 1% over the band
+    (the incident medium stays 1)."""
+    out = n[None, :] * (1 + 0.01 * (600 / wl[:, None] - 1)).astype(n.real.dtype)
+    out[:, 0] = 1
+    return out.astype(n.dtype)
+
+
 def points(N, dtype=np.float64):
-    """N (wavelength, cos_i) points on a grid (N a multiple of 1000): 400-800 nm, 0-80 degrees."""
-    wl, th = np.meshgrid(np.linspace(400, 800, N // 1000), np.deg2rad(np.linspace(0, 80, 1000)), indexing="ij")
+    """N (wavelength, cos_i) points on a grid (N a multiple of 100): 400-800 nm, 0-80 degrees."""
+    wl, th = np.meshgrid(np.linspace(400, 800, N // 100), np.deg2rad(np.linspace(0, 80, 100)), indexing="ij")
     return wl.ravel().astype(dtype), np.cos(th.ravel()).astype(dtype)
 
 
-def numpy_tmm(n, d, wl, cos_i):
-    """Plain vectorized transfer matrices (characteristic matrices, one per layer, as a textbook
-    would write them in NumPy) over all points at once: R and T of s and p."""
-    s2 = (n[0].real ** 2) * (1 - cos_i**2)
-    kz = [np.sqrt(n[j] ** 2 - s2 + 0j).astype(n.dtype) for j in range(len(n))]
+def numpy_stack(n, d, wl, cos_i, outputs="R"):
+    """Plain vectorized characteristic matrices over all points at once (`n` of shape `(L+2,)` or
+    `(N, L+2)`), as a textbook writes them in NumPy. `outputs="R"`: `(R_s, R_p)`; `"all"`: also
+    `T_s, T_p`, the absorption per inner layer `A_s, A_p` (`(N, L)`, from the power flux at each
+    interface), the amplitudes `r_s, r_p, t_s, t_p` (conventions of `jo.stack`: `t_p` of the whole
+    field, `r_p = -r_s` at normal incidence) and `rp_rs = r_p conj(r_s)`."""
+    L = n.shape[-1]
+    col = lambda j: n[..., j]
+    n0 = col(0).real
+    s2 = (n0 ** 2) * (1 - cos_i ** 2)
+    kz = [np.sqrt(col(j) ** 2 - s2 + 0j).astype(n.dtype) for j in range(L)]
     kz = [np.where(k.imag < 0, -k, k) for k in kz]
-    out = []
+    out = {}
     for pol in "sp":
-        eta = [k if pol == "s" else n[j] ** 2 / k for j, k in enumerate(kz)]
-        m11 = np.ones_like(kz[0])
-        m12 = np.zeros_like(kz[0])
-        m21 = np.zeros_like(kz[0])
-        m22 = np.ones_like(kz[0])
-        for j in range(1, len(n) - 1):
-            dl = 2 * np.pi * d[j - 1] / wl * kz[j]
+        eta = [k if pol == "s" else col(j) ** 2 / k for j, k in enumerate(kz)]
+        # fields (E, H) from the back: the outgoing wave (1, eta_exit), through each layer's matrix
+        E = np.ones_like(kz[0])
+        H = eta[-1] * E
+        flux = []
+        for j in range(L - 2, 0, -1):
+            if outputs == "all":
+                flux.append((E * np.conj(H)).real)
+            dl = 2 * np.pi * d[..., j - 1] / wl * kz[j]
             c, s = np.cos(dl), np.sin(dl)
-            a11, a12, a21 = c, -1j * s / eta[j], -1j * eta[j] * s
-            m11, m12, m21, m22 = (m11 * a11 + m12 * a21, m11 * a12 + m12 * c, m21 * a11 + m22 * a21, m21 * a12 + m22 * c)
-        B = m11 + m12 * eta[-1]
-        C = m21 + m22 * eta[-1]
-        D = eta[0] * B + C
-        r = (eta[0] * B - C) / D
-        R = np.abs(r) ** 2
-        T = 4 * eta[0].real * eta[-1].real / np.abs(D) ** 2
-        out += [R, T]
-    return out[0], out[2], out[1], out[3]  # R_s, R_p, T_s, T_p
+            E, H = c * E - 1j * s / eta[j] * H, -1j * eta[j] * s * E + c * H
+        D = eta[0] * E + H
+        r = (eta[0] * E - H) / D
+        out["R_" + pol] = np.abs(r) ** 2
+        if outputs == "all":
+            norm = 4 * eta[0].real / np.abs(D) ** 2
+            fl = [(E * np.conj(H)).real] + flux[::-1] + [eta[-1].real]  # at each interface, front to back
+            fl = [f * norm for f in fl]
+            out["T_" + pol] = fl[-1]
+            out["A_" + pol] = np.stack([fl[j] - fl[j + 1] for j in range(L - 2)], axis=-1)
+            t = 2 * eta[0] / D
+            if pol == "p":  # Hecht's signs (r_p = -r_s at normal incidence); t_p of the whole in-plane field
+                r = -r
+                t = t * (kz[0] / col(0)) / (kz[-1] / col(L - 1))
+            out["r_" + pol], out["t_" + pol] = r, t
+    if outputs == "all":
+        out["rp_rs"] = out["r_p"] * np.conj(out["r_s"])
+    return out
 
 
-def bench_stack(*, quick=False, progress=None, repeats=None):
+def flops_per_point(layers, outputs="R", gradient=False):
+    """Real floating-point operations per point of the coherent stack kernel, counted from its
+    algorithm (`jaxoptics._films._layers`; a complex multiplication is 6, a complex addition 2, a
+    real division or square root 1).
+
+    Per inner layer (the scan step): `q = n^2 - n0^2 + k_i^2` (8); its decaying root, Kahan's form
+    (12, with a hypot and two square roots); the phase `a k_z` (2); one argument reduction and the
+    sine and cosine polynomials (about 40); `expm1` (about 15); the entries `c` and
+    `s = a g sin(delta) / delta` (20); `q s`, `(q / n^2) s`, `n^2 s` (26, with `1 / n^2` per point);
+    the fields of both polarizations through the matrices (4 outputs of two complex products and a
+    sum: 56). About 180. With every output, the flux at each interface (2 x 3) and the
+    attenuation (2): 188. Once per point: the exit medium's `k_z` (20), the front's `D`, `r` and
+    `R` of both polarizations (about 50); with every output also `t`, `T`, the flux
+    normalizations, `A` per layer (3 per layer) and `rp_rs` (about 60 + 3 per layer).
+
+    The gradient in every `n`, `k`, `d`: the forward pass recomputed block by block, then the
+    transposed tangent scan (per layer: the entry derivatives `dc`, `ds` (about 40 with the
+    closed form of `ds/dq`), the tangent fields (4 outputs of four complex products: 104), the
+    cotangents of `q`, `n`, `d` (about 40)): about 3x the forward pass's per-layer count."""
+    per_layer = 180 + (8 if outputs == "all" else 0)
+    once = 70 + (60 + 3 * layers if outputs == "all" else 0)
+    fwd = layers * per_layer + once
+    return fwd + (layers * 184 + once) * 2 if gradient else fwd
+
+
+def fma_throughput(N, dtype=np.float64, repeats=5):
+    """Real flops per second of XLA on this machine for a plain fused loop of complex
+    multiply-adds (`z = z * a + b`, 32 in a row, over N points: one fused loop, in cache and
+    vectorized), the median over repeats."""
     import jax
     import jax.numpy as jnp
+
+    cdt = np.complex128 if dtype == np.float64 else np.complex64
+    rng = np.random.default_rng(1)
+    z0 = jnp.asarray((rng.uniform(-1, 1, N) + 1j * rng.uniform(-1, 1, N)).astype(cdt))
+    a = jnp.asarray((0.6 + 0.7j) * np.ones(N, cdt))
+    b = jnp.asarray((0.1 - 0.2j) * np.ones(N, cdt))
+    K = 32
+
+    @jax.jit
+    def f(z, a, b):
+        for _ in range(K):
+            z = z * a + b
+        return z
+
+    _, t, _ = timeit(lambda: f(z0, a, b), repeats=repeats)
+    return K * 8 * N / t  # a complex multiply-add: 6 + 2 real flops
+
+
+def _tmm_per_point(layers, K):
     import tmm
 
-    import jaxoptics as jo
-
-    N = 100_000 if quick else 1_000_000
-    reps = repeats or (3 if quick else 5)
-    rows = []
-
-    # tmm, one point at a time (s and p), over a sample of the points
-    n64, d64 = example_stack()
-    wl, c = points(N)
-    K = 100 if quick else 400
+    n, d = example_stack(np.float64, layers)
+    wl, c = points(max(100, K // 100 * 100))
     idx = np.linspace(0, len(c) - 1, K).astype(int)
-    dl = [np.inf] + list(d64) + [np.inf]
+    dl = [np.inf] + list(d) + [np.inf]
     runs = []
     for _ in range(3):
         t = time.perf_counter()
         for i in idx:
             th = np.arccos(c[i])
-            tmm.coh_tmm("s", n64, dl, th, wl[i])
-            tmm.coh_tmm("p", n64, dl, th, wl[i])
+            tmm.coh_tmm("s", n, dl, th, wl[i])
+            tmm.coh_tmm("p", n, dl, th, wl[i])
         runs.append((time.perf_counter() - t) / K)
-    per_tmm = float(np.median(runs))
-    rows.append(dict(method="tmm (Python loop, per point)", dtype="float64", points=K, compile_s=None,
-                     run_s=per_tmm * K, per_point_s=per_tmm))
+    return float(np.median(runs))
+
+
+def _max_diff(got, ref):
+    return float(max(np.max(np.abs(np.asarray(got[k]) - ref[k])) for k in ref))
+
+
+def bench_stack(*, quick=False, progress=None, repeats=None, layers=LAYERS, N=None, dtypes=("float64", "float32")):
+    """Rows of the stack section: one per (layers, dtype, indices, outputs, pass), each with the
+    kernel's time per point, NumPy's for the same outputs (forward rows), tmm's (per point, float64,
+    same layer count), the floor and the gradient's ratio to its forward pass."""
+    import jax
+    import jax.numpy as jnp
+
+    import jaxoptics as jo
+
+    N = N or (20_000 if quick else 100_000)
+    reps = repeats or (3 if quick else 5)
+    rows = []
+    floor_rate = {}
+    dtypes = [np.dtype(t).type for t in dtypes]
+    for dtype in dtypes:
+        floor_rate[np.dtype(dtype).name] = fma_throughput(N, dtype, repeats=reps)
+    tmm_pp = {L: _tmm_per_point(L, 20 if quick else 100) for L in layers}
     if progress:
         progress.update(1)
 
-    for dtype in (np.float64, np.float32):
-        n, d = example_stack(dtype)
-        wl, c = points(N, dtype)
-        name = np.dtype(dtype).name
-        _, t_np, _ = timeit(lambda: numpy_tmm(n, d, wl, c), repeats=max(3, reps - 2), warmup=True)
-        rows.append(dict(method="NumPy vectorized transfer matrices", dtype=name, points=len(c), compile_s=None, run_s=t_np,
-                         per_point_s=t_np / len(c)))
-        jn, jd, jw, jc = (jnp.asarray(x) for x in (n, d, wl, c))
-        f = jax.jit(lambda n, d, w, c: (lambda r: (r.R_s, r.R_p, r.T_s, r.T_p))(jo.stack(n, d, w, c)))
-        comp, t_f, _ = timeit(lambda: f(jn, jd, jw, jc), repeats=reps)
-        fwd_row = dict(method="jaxoptics.stack (R, T; s and p)", dtype=name, points=len(c), compile_s=comp,
-                       run_s=t_f, per_point_s=t_f / len(c))
-        rows.append(fwd_row)
-        g = jax.jit(jax.grad(lambda n, d, w, c: jnp.sum(jo.stack(n, d, w, c).R), argnums=(0, 1)))
-        comp_g, t_g, _ = timeit(lambda: g(jn, jd, jw, jc), repeats=reps)
-        rows.append(dict(method="grad of sum(R) w.r.t. every n, k and d", dtype=name, points=len(c),
-                         compile_s=comp_g, run_s=t_g, per_point_s=t_g / len(c), vs_forward=t_g / t_f))
-        # a loss whose cotangent depends on R (so the gradient needs R's values: a forward pass more)
-        R_data = 0.9 * f(jn, jd, jw, jc)[0]
-        h = jax.jit(jax.grad(lambda n, d, w, c: jnp.sum((jo.stack(n, d, w, c).R - R_data) ** 2), argnums=(0, 1)))
-        comp_h, t_h, _ = timeit(lambda: h(jn, jd, jw, jc), repeats=reps)
-        rows.append(dict(method="grad of sum((R - R_data)^2) w.r.t. every n, k and d", dtype=name, points=len(c),
-                         compile_s=comp_h, run_s=t_h, per_point_s=t_h / len(c), vs_forward=t_h / t_f))
-        # agreement with the NumPy baseline (a check that the rows compute the same thing)
-        ref = numpy_tmm(n, d, wl, c)
-        got = f(jn, jd, jw, jc)
-        fwd_row["max_abs_diff_vs_numpy"] = float(max(np.max(np.abs(np.asarray(a) - b)) for a, b in zip(got, ref)))
-        if progress:
-            progress.update(1)
+    def R_only(n, d, w, c):
+        r = jo.stack(n, d, w, c)
+        return {"R_s": r.R_s, "R_p": r.R_p}
+
+    def every(n, d, w, c):
+        r = jo.stack(n, d, w, c)
+        return {k: getattr(r, k) for k in ("R_s", "R_p", "T_s", "T_p", "A_s", "A_p", "r_s", "r_p", "t_s", "t_p", "rp_rs")}
+
+    grad = jax.jit(jax.grad(lambda n, d, w, c: jnp.sum(jo.stack(n, d, w, c).R), argnums=(0, 1)))
+    fwd = {"R": jax.jit(R_only), "all": jax.jit(every)}
+    for L in layers:
+        for dtype in dtypes:
+            name = np.dtype(dtype).name
+            n1, d = example_stack(dtype, L)
+            wl, c = points(N, dtype)
+            for indices in ("shared", "per point"):
+                n = n1 if indices == "shared" else per_point(n1, wl)
+                args = tuple(jnp.asarray(x) for x in (n, d, wl, c))
+                base = dict(layers=L, dtype=name, indices=indices, points=N, tmm_per_point_s=tmm_pp[L])
+                t_fwd = {}
+                for outputs in ("R", "all"):
+                    comp, t, _ = timeit(lambda: fwd[outputs](*args), repeats=reps)
+                    _, t_np, _ = timeit(lambda: numpy_stack(n, d, wl, c, outputs), repeats=max(1, reps - 2))
+                    flops = flops_per_point(L, outputs)
+                    K = min(N, 2000)  # agreement with NumPy on the first K points: the rows compute the same thing
+                    got = {k: v[:K] for k, v in fwd[outputs](*args).items()}
+                    diff = _max_diff(got, numpy_stack(n[:K] if n.ndim == 2 else n, d, wl[:K], c[:K], outputs))
+                    rows.append(dict(base, outputs=outputs, pass_="forward", compile_s=comp, run_s=t, per_point_s=t / N,
+                                     numpy_per_point_s=t_np / N, flops=flops, floor_per_point_s=flops / floor_rate[name],
+                                     max_abs_diff_vs_numpy=diff))
+                    t_fwd[outputs] = t
+                comp, t, _ = timeit(lambda: grad(*args), repeats=reps)
+                flops = flops_per_point(L, "R", gradient=True)
+                rows.append(dict(base, outputs="R", pass_="gradient", compile_s=comp, run_s=t, per_point_s=t / N,
+                                 flops=flops, floor_per_point_s=flops / floor_rate[name], vs_forward=t / t_fwd["R"]))
+            if progress:
+                progress.update(1)
+    for r in rows:
+        r["fma_flops_per_s"] = floor_rate[r["dtype"]]
     return rows
 
 
 def stack_table(rows) -> str:
-    tmm_row = rows[0]
-    np_rows = {r["dtype"]: r for r in rows if r["method"].startswith("NumPy")}
-    out = ["| method | dtype | points | compile (s) | run (s) | per point (ns) | vs tmm | vs NumPy | notes |",
-           "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
+    """The section's table: ns per point, and ratios to NumPy (same outputs), tmm and the floor;
+    gradient rows give their ratio to the forward pass of the reflectances. Then the ratios the
+    kernel is held to: per-point over shared indices, every output over the reflectances."""
+    out = ["| layers | dtype | indices | outputs | pass | compile (s) | ns per point | vs NumPy | vs tmm | floor (ns) | x floor | notes |",
+           "| ---: | --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
     for r in rows:
-        comp = "-" if r["compile_s"] is None else f"{r['compile_s']:.2f}"
-        vt = f"{tmm_row['per_point_s'] / r['per_point_s']:.3g}x"
-        b = np_rows.get(r["dtype"])
-        vn = f"{b['per_point_s'] / r['per_point_s']:.2f}x" if b and not r["method"].startswith("tmm") else "-"
+        vn = f"{r['numpy_per_point_s'] / r['per_point_s']:.1f}x faster" if "numpy_per_point_s" in r else "-"
+        vt = f"{r['tmm_per_point_s'] / r['per_point_s']:.3g}x faster"
         notes = []
         if "vs_forward" in r:
-            notes.append(f"{r['vs_forward']:.2f}x the forward pass")
-            vn = "-"
-        if "max_abs_diff_vs_numpy" in r:
-            notes.append(f"max |diff| vs NumPy {r['max_abs_diff_vs_numpy']:.1e}")
-        out.append(f"| {r['method']} | {r['dtype']} | {r['points']:,} | {comp} | {r['run_s']:.3f} | "
-                   f"{1e9 * r['per_point_s']:.0f} | {vt} | {vn} | {'; '.join(notes)} |")
-    return "\n".join(out)
+            notes.append(f"{r['vs_forward']:.2f}x the forward pass of R")
+        if r.get("max_abs_diff_vs_numpy") is not None:
+            notes.append(f"max abs diff vs NumPy {r['max_abs_diff_vs_numpy']:.1e}")
+        outputs = "R_s, R_p" if r["outputs"] == "R" else "all"
+        what = "grad of sum(R) in every n, k, d" if r["pass_"] == "gradient" else "forward"
+        out.append(f"| {r['layers']} | {r['dtype']} | {r['indices']} | {outputs} | {what} | {r['compile_s']:.2f} | "
+                   f"{1e9 * r['per_point_s']:.0f} | {vn} | {vt} | {1e9 * r['floor_per_point_s']:.0f} | "
+                   f"{r['per_point_s'] / r['floor_per_point_s']:.1f} | {'; '.join(notes)} |")
+    rate = {r["dtype"]: r["fma_flops_per_s"] for r in rows}
+    out += ["", "Floor: the flops per point counted from the algorithm (`bench_stack.flops_per_point`) at the rate of "
+            "a plain fused loop of complex multiply-adds in XLA on this machine: "
+            + ", ".join(f"{v / 1e9:.1f} Gflop/s ({k})" for k, v in rate.items()) + ".", ""]
+    key = lambda r: (r["layers"], r["dtype"])
+    ratios = ["| layers | dtype | per point / shared (R) | per point / shared (all) | all / R (per point) | "
+              "grad / forward (per point) |", "| ---: | --- | ---: | ---: | ---: | ---: |"]
+    for L, dt in dict.fromkeys(key(r) for r in rows):
+        g = {(r["indices"], r["outputs"], r["pass_"]): r["per_point_s"] for r in rows if key(r) == (L, dt)}
+        ratios.append(f"| {L} | {dt} | {g['per point', 'R', 'forward'] / g['shared', 'R', 'forward']:.2f} | "
+                      f"{g['per point', 'all', 'forward'] / g['shared', 'all', 'forward']:.2f} | "
+                      f"{g['per point', 'all', 'forward'] / g['per point', 'R', 'forward']:.2f} | "
+                      f"{g['per point', 'R', 'gradient'] / g['per point', 'R', 'forward']:.2f} |")
+    return "\n".join(out + ratios)
+
+
+def stack_chart(rows, path):
+    """Time per point against the number of layers, one panel per dtype: the kernel's cases,
+    NumPy computing the same outputs, tmm, and the floor (log-log)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    dtypes = list(dict.fromkeys(r["dtype"] for r in rows))
+    fig, axes = plt.subplots(1, len(dtypes), figsize=(6 * len(dtypes), 4.8), squeeze=False)
+    for ax, dt in zip(axes[0], dtypes):
+        rs = [r for r in rows if r["dtype"] == dt]
+        Ls = sorted({r["layers"] for r in rs})
+
+        def line(select, value, label, **kw):
+            ys = [1e9 * value(next(r for r in rs if r["layers"] == L and select(r))) for L in Ls]
+            ax.plot(Ls, ys, marker="o", label=label, **kw)
+
+        for ind, ls in (("shared", "--"), ("per point", "-")):
+            line(lambda r, i=ind: r["indices"] == i and r["outputs"] == "R" and r["pass_"] == "forward",
+                 lambda r: r["per_point_s"], f"stack, {ind} n, R", color="C0", ls=ls)
+            line(lambda r, i=ind: r["indices"] == i and r["outputs"] == "all" and r["pass_"] == "forward",
+                 lambda r: r["per_point_s"], f"stack, {ind} n, all outputs", color="C2", ls=ls)
+            line(lambda r, i=ind: r["indices"] == i and r["pass_"] == "gradient",
+                 lambda r: r["per_point_s"], f"grad of sum(R), {ind} n", color="C4", ls=ls)
+        for out, color in (("R", "C1"), ("all", "C3")):
+            line(lambda r, o=out: r["indices"] == "per point" and r["outputs"] == o and r["pass_"] == "forward",
+                 lambda r: r["numpy_per_point_s"], f"NumPy, per-point n, {'R' if out == 'R' else 'all outputs'}",
+                 color=color, ls=":")
+        line(lambda r: r["pass_"] == "forward" and r["outputs"] == "R", lambda r: r["tmm_per_point_s"],
+             "tmm (float64, per point)", color="C7", ls="-.")
+        line(lambda r: r["pass_"] == "forward" and r["outputs"] == "R", lambda r: r["floor_per_point_s"],
+             "floor (flops at the complex-FMA rate), R", color="k", ls=":")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("inner layers")
+        ax.set_ylabel("time per (wavelength, angle) point (ns)")
+        ax.set_title(f"{dt}, {rs[0]['points']:,} points")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
