@@ -174,10 +174,14 @@ def _padded(n, d, wavelength, cos_i):
     return pad(n, cdt, 1), pad(d, dt, 1), pad(wavelength, dt, 0), pad(cos_i, dt, 0), batch
 
 
-def _valid(nn, dd, wavelength, cos_i):
-    """Elements with every input in the domain (`nn`, `dd` layer axis first)."""
-    nr, ni = jnp.real(nn), jnp.imag(nn)
-    ok = jnp.all((nr > 0) & (nr < jnp.inf) & (ni >= 0) & (ni < jnp.inf), axis=0) & (ni[0] == 0)
+def _valid(media, dd, wavelength, cos_i):
+    """Elements with every input in the domain (`media`: `_Media`; `dd` layer axis first)."""
+    good = lambda n: (jnp.real(n) > 0) & (jnp.real(n) < jnp.inf) & (jnp.imag(n) >= 0) & (jnp.imag(n) < jnp.inf)
+    ends = good(media.first) & (jnp.imag(media.first) == 0) & good(media.last)
+    shape = jnp.broadcast_shapes(ends.shape, media.inner.shape[1:])
+    # one reduction over the media (its result stored once, for every output's NaN mask to read)
+    ok = jnp.all(jnp.concatenate([jnp.broadcast_to(ends, shape)[None],
+                                  jnp.broadcast_to(good(media.inner), media.inner.shape[:1] + shape)]), axis=0)
     ok &= jnp.all((dd >= 0) & (dd < jnp.inf), axis=0)
     ok &= (wavelength > 0) & (wavelength < jnp.inf) & (jnp.abs(cos_i) < jnp.inf)
     return ok
@@ -232,8 +236,13 @@ def _stack_program(n, d, wavelength, cos_i, *, inc, block):
     kernel's hundreds of operations on its own, and inside a caller's `jit` it is inlined. `block`
     is `_block_size()`, passed in so that a program is keyed by the block size it was traced with."""
     n, d, wavelength, cos_i, batch = _padded(n, d, wavelength, cos_i)
-    return _chunked(lambda n_, d_, w_, c_: _stack(n_, d_, w_, c_, inc), ((n, 1), (d, 1), (wavelength, 0), (cos_i, 0)),
-                    batch, block)
+    # the first and the last medium also apart (the kernel reads the inner layers of `n`): in
+    # reverse mode each part's cotangent is then formed in a loop of its own and the three are
+    # added once, outside the blocks (as one array, XLA builds the whole index's cotangent in one
+    # fused loop over points and media, recomputing every medium's terms for each medium: 10x
+    # the forward pass for one layer). `n` itself is not sliced: its blocks are a reshape, no copy.
+    parts = ((n[..., 0], 0), (n, 1), (n[..., -1], 0), (d, 1), (wavelength, 0), (cos_i, 0))
+    return _chunked(lambda *a: _stack(*a, inc), parts, batch, block)
 
 
 # Points per block of `_chunked` on the CPU. The layer scan streams its carry (the tangential
@@ -302,27 +311,48 @@ def _chunked(f, args, batch, block_size):
     return jax.tree.map(unblock, out)
 
 
-def _stack(nn, dd, wavelength, cos_i, inc):
-    """The kernel on `_padded`'s arrays: `nn` (media) and `dd` (inner layers) with the layer axis
-    first, not broadcast to the batch (the scan step does that). A `k` within rounding below 0 is
-    set to 0 here, block by block (on the whole batch, XLA fuses it into the transpose of a
-    per-point `n` and then transposes twice)."""
-    nn = _materialize_parts(V.without_rounding_k(nn))
-    batch = jnp.broadcast_shapes(nn.shape[1:], dd.shape[1:], wavelength.shape, cos_i.shape)
-    L = nn.shape[0]
+class _Media:
+    """The indices of a stack's media, layer axis first, from the first medium, the inner layers and
+    the last medium held apart: `media[j]` is medium `j`, `media[i:j]` inner layers only."""
+
+    def __init__(self, first, inner, last):
+        self.first, self.inner, self.last = first, inner, last
+        self.L = inner.shape[0] + 2
+
+    def __getitem__(self, j):
+        if isinstance(j, slice):
+            start, stop, step = j.indices(self.L)
+            if step != 1 or start < 1 or stop > self.L - 1:
+                raise IndexError(f"only inner layers slice: {j}")
+            return self.inner[start - 1:stop - 1]
+        j = j % self.L
+        return self.first if j == 0 else self.last if j == self.L - 1 else self.inner[j - 1]
+
+
+def _stack(n_first, nn, n_last, dd, wavelength, cos_i, inc):
+    """The kernel on `_padded`'s arrays: the first and the last medium, and `nn` (every medium,
+    of which the inner layers are read) and `dd` with the layer axis first, not broadcast to the
+    batch (the scan step does that). A `k` within rounding below 0 is set to 0 here, block by block, and the inner layers'
+    indices are then stored once (for the scan and the validity check to read contiguous rows;
+    on the whole batch, XLA fuses the clean-up into the transpose of a per-point `n` and then
+    transposes twice)."""
+    clean = V.without_rounding_k
+    media = _Media(clean(n_first), _materialize_parts(clean(nn[1:-1])), clean(n_last))
+    batch = jnp.broadcast_shapes(n_first.shape, nn.shape[1:], n_last.shape, dd.shape[1:], wavelength.shape, cos_i.shape)
+    L = media.L
     cdt = nn.dtype
-    valid = _valid(nn, dd, wavelength, cos_i)
+    valid = _valid(media, dd, wavelength, cos_i)
     c = jnp.where(cos_i < 0, -cos_i, cos_i)  # |cos_i|, derivative +1 at 0 (as in fresnel)
-    n0 = jnp.real(nn[0])
+    n0 = jnp.real(media[0])
     ki = jnp.broadcast_to((n0 * c).astype(cdt), batch)
     n0c = n0.astype(cdt)
     k0 = 2 * jnp.pi / wavelength
     kz_sq = _KzSq(ki, n0c)  # k_z^2 formed as in `fresnel`
-    kz_exit = _materialize_parts(decaying_sqrt(kz_sq(nn[L - 1])))
+    kz_exit = _materialize_parts(decaying_sqrt(kz_sq(media[L - 1])))
     if not inc:
-        s, p = _group(ki, n0c, kz_exit, nn[L - 1], nn[1:L - 1], dd, k0, kz_sq, real_incident=True)
+        s, p = _group(ki, n0c, kz_exit, media[L - 1], media.inner, dd, k0, kz_sq, real_incident=True)
         return _finish(valid, s.R, p.R, s.T, p.T, list(s.A), list(p.A), (s.r, p.r, s.t, p.t), p.r * jnp.conj(s.r))
-    Rs, Rp, Ts, Tp, As, Ap, rp_rs = _incoherent((0,) + inc + (L - 1,), ki, nn, dd, k0, kz_sq)
+    Rs, Rp, Ts, Tp, As, Ap, rp_rs = _incoherent((0,) + inc + (L - 1,), ki, media, dd, k0, kz_sq)
     return _finish(valid, Rs, Rp, Ts, Tp, As, Ap, None, rp_rs)
 
 
