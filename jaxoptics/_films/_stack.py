@@ -337,7 +337,7 @@ def _stack(n_first, nn, n_last, dd, wavelength, cos_i, inc):
     on the whole batch, XLA fuses the clean-up into the transpose of a per-point `n` and then
     transposes twice)."""
     clean = V.without_rounding_k
-    media = _Media(clean(n_first), _materialize_parts(clean(nn[1:-1])), clean(n_last))
+    media = _Media(*(_materialize_parts(clean(x)) for x in (n_first, nn[1:-1], n_last)))
     batch = jnp.broadcast_shapes(n_first.shape, nn.shape[1:], n_last.shape, dd.shape[1:], wavelength.shape, cos_i.shape)
     L = media.L
     cdt = nn.dtype
