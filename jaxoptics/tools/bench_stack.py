@@ -2,7 +2,8 @@
 (wavelength, angle) points, in the cases users have, against NumPy and tmm, and against a floor.
 
 Cases, each measured in one run (medians over repeats, the first call's extra time reported as
-compile time):
+compile time; the six programs of one layer count and dtype are timed round-robin, so that their
+ratios are measured under the same conditions):
 
 - indices **shared** by all points (`n` of shape `(L+2,)`) or **per point** (`(N, L+2)`: what a
   dispersive material gives, one index per wavelength, and what a fit whose indices depend on
@@ -185,7 +186,7 @@ def bench_stack(*, quick=False, progress=None, repeats=None, layers=LAYERS, N=No
     import jaxoptics as jo
 
     N = N or (20_000 if quick else 100_000)
-    reps = repeats or (3 if quick else 5)
+    reps = repeats or (3 if quick else 7)
     rows = []
     floor_rate = {}
     dtypes = [np.dtype(t).type for t in dtypes]
@@ -210,26 +211,39 @@ def bench_stack(*, quick=False, progress=None, repeats=None, layers=LAYERS, N=No
             name = np.dtype(dtype).name
             n1, d = example_stack(dtype, L)
             wl, c = points(N, dtype)
-            for indices in ("shared", "per point"):
-                n = n1 if indices == "shared" else per_point(n1, wl)
-                args = tuple(jnp.asarray(x) for x in (n, d, wl, c))
-                base = dict(layers=L, dtype=name, indices=indices, points=N, tmm_per_point_s=tmm_pp[L])
-                t_fwd = {}
-                for outputs in ("R", "all"):
-                    comp, t, _ = timeit(lambda: fwd[outputs](*args), repeats=reps)
-                    _, t_np, _ = timeit(lambda: numpy_stack(n, d, wl, c, outputs), repeats=max(1, reps - 2))
-                    flops = flops_per_point(L, outputs)
+            ns = {"shared": n1, "per point": per_point(n1, wl)}
+            args = {k: tuple(jnp.asarray(x) for x in (n, d, wl, c)) for k, n in ns.items()}
+            # the six programs of this layer count and dtype, timed round-robin (their ratios are
+            # then measured under the same conditions): first calls (compile), then the repeats
+            cases = {(ind, out, p): (grad if p == "gradient" else fwd[out], args[ind])
+                     for ind in ns for out, p in (("R", "forward"), ("all", "forward"), ("R", "gradient"))}
+            first = {}
+            for key, (f, a) in cases.items():
+                t0 = time.perf_counter()
+                jax.block_until_ready(f(*a))
+                first[key] = time.perf_counter() - t0
+            runs = {key: [] for key in cases}
+            for _ in range(reps):
+                for key, (f, a) in cases.items():
+                    t0 = time.perf_counter()
+                    jax.block_until_ready(f(*a))
+                    runs[key].append(time.perf_counter() - t0)
+            med = {key: float(np.median(v)) for key, v in runs.items()}
+            for (ind, out, p), t in med.items():
+                n = ns[ind]
+                row = dict(layers=L, dtype=name, indices=ind, points=N, tmm_per_point_s=tmm_pp[L], outputs=out, pass_=p,
+                           compile_s=max(first[ind, out, p] - t, 0.0), run_s=t, per_point_s=t / N)
+                flops = flops_per_point(L, out, gradient=p == "gradient")
+                row.update(flops=flops, floor_per_point_s=flops / floor_rate[name])
+                if p == "gradient":
+                    row["vs_forward"] = t / med[ind, "R", "forward"]
+                else:
+                    _, t_np, _ = timeit(lambda: numpy_stack(n, d, wl, c, out), repeats=max(1, reps - 2))
                     K = min(N, 2000)  # agreement with NumPy on the first K points: the rows compute the same thing
-                    got = {k: v[:K] for k, v in fwd[outputs](*args).items()}
-                    diff = _max_diff(got, numpy_stack(n[:K] if n.ndim == 2 else n, d, wl[:K], c[:K], outputs))
-                    rows.append(dict(base, outputs=outputs, pass_="forward", compile_s=comp, run_s=t, per_point_s=t / N,
-                                     numpy_per_point_s=t_np / N, flops=flops, floor_per_point_s=flops / floor_rate[name],
-                                     max_abs_diff_vs_numpy=diff))
-                    t_fwd[outputs] = t
-                comp, t, _ = timeit(lambda: grad(*args), repeats=reps)
-                flops = flops_per_point(L, "R", gradient=True)
-                rows.append(dict(base, outputs="R", pass_="gradient", compile_s=comp, run_s=t, per_point_s=t / N,
-                                 flops=flops, floor_per_point_s=flops / floor_rate[name], vs_forward=t / t_fwd["R"]))
+                    got = {k: v[:K] for k, v in fwd[out](*args[ind]).items()}
+                    row.update(numpy_per_point_s=t_np / N,
+                               max_abs_diff_vs_numpy=_max_diff(got, numpy_stack(n[:K] if n.ndim == 2 else n, d, wl[:K], c[:K], out)))
+                rows.append(row)
             if progress:
                 progress.update(1)
     for r in rows:
