@@ -160,9 +160,9 @@ def _prepare(n, d, wavelength, cos_i, incoherent):
 
 
 def _padded(n, d, wavelength, cos_i):
-    """The inputs in the computation's dtypes (`n` complex) with their batch ranks padded to the batch's (size-1 axes), sizes not: per-layer arrays of one
-    point are broadcast inside the scan step, so no (layers x points) array is materialized for
-    them. Also returns the batch shape."""
+    """The inputs in the computation's dtypes (`n` complex) with their batch ranks padded to the
+    batch's (size-1 axes), sizes not: per-layer arrays of one point are broadcast inside the scan
+    step, so no (layers x points) array is materialized for them. Also returns the batch shape."""
     batch = jnp.broadcast_shapes(jnp.shape(n)[:-1], jnp.shape(d)[:-1], jnp.shape(wavelength), jnp.shape(cos_i))
     dt = V.float_dtype(n, d, wavelength, cos_i)
     cdt = V.complex_dtype(dt)
@@ -297,8 +297,7 @@ def _chunked(f, args, batch, block_size):
             x = jnp.broadcast_to(x, batch + core).reshape((N,) + core)
             if nb * bs > N:
                 x = jnp.concatenate([x, jnp.broadcast_to(x[-1:], (nb * bs - N,) + core)], axis=0)
-            x = x.reshape((nb, bs) + core)
-            blocks.append(x)
+            blocks.append(x.reshape((nb, bs) + core))
     mapped = [b for b in blocks if b is not None]
 
     def one_block(ys):
@@ -332,27 +331,26 @@ class _Media:
 def _stack(n_first, nn, n_last, dd, wavelength, cos_i, inc):
     """The kernel on `_padded`'s arrays: the first and the last medium, and `nn` (every medium,
     of which the inner layers are read) and `dd` with the layer axis first, not broadcast to the
-    batch (the scan step does that). A `k` within rounding below 0 is set to 0 here, block by block, and the inner layers'
-    indices are then stored once (for the scan and the validity check to read contiguous rows;
-    on the whole batch, XLA fuses the clean-up into the transpose of a per-point `n` and then
-    transposes twice)."""
+    batch (the scan step does that). A `k` within rounding below 0 is set to 0 here, block by
+    block, and the media are then stored once (for the scan and the validity check to read
+    contiguous rows; on the whole batch, XLA fuses the clean-up into the transpose of a per-point
+    `n` and then transposes twice)."""
     clean = V.without_rounding_k
     media = _Media(*(_materialize_parts(clean(x)) for x in (n_first, nn[1:-1], n_last)))
     batch = jnp.broadcast_shapes(n_first.shape, nn.shape[1:], n_last.shape, dd.shape[1:], wavelength.shape, cos_i.shape)
-    L = media.L
     cdt = nn.dtype
     valid = _valid(media, dd, wavelength, cos_i)
     c = jnp.where(cos_i < 0, -cos_i, cos_i)  # |cos_i|, derivative +1 at 0 (as in fresnel)
-    n0 = jnp.real(media[0])
+    n0 = jnp.real(media.first)
     ki = jnp.broadcast_to((n0 * c).astype(cdt), batch)
     n0c = n0.astype(cdt)
     k0 = 2 * jnp.pi / wavelength
     kz_sq = _KzSq(ki, n0c)  # k_z^2 formed as in `fresnel`
-    kz_exit = _materialize_parts(decaying_sqrt(kz_sq(media[L - 1])))
+    kz_exit = _materialize_parts(decaying_sqrt(kz_sq(media.last)))
     if not inc:
-        s, p = _group(ki, n0c, kz_exit, media[L - 1], media.inner, dd, k0, kz_sq, real_incident=True)
+        s, p = _group(ki, n0c, kz_exit, media.last, media.inner, dd, k0, kz_sq, real_incident=True)
         return _finish(valid, s.R, p.R, s.T, p.T, list(s.A), list(p.A), (s.r, p.r, s.t, p.t), p.r * jnp.conj(s.r))
-    Rs, Rp, Ts, Tp, As, Ap, rp_rs = _incoherent((0,) + inc + (L - 1,), ki, media, dd, k0, kz_sq)
+    Rs, Rp, Ts, Tp, As, Ap, rp_rs = _incoherent((0,) + inc + (media.L - 1,), ki, media, dd, k0, kz_sq)
     return _finish(valid, Rs, Rp, Ts, Tp, As, Ap, None, rp_rs)
 
 
