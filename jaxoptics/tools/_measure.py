@@ -51,6 +51,30 @@ def timeit(fn, *, repeats=5, warmup=True, settle=0):
     return (None if first is None else max(first - med, 0.0)), med, runs
 
 
+def timeit_round_robin(fns: dict, *, repeats=5) -> dict:
+    """`timeit` for several functions timed in turn: each one's first call, then `repeats` rounds
+    calling each once, so a drift of the machine's speed reaches all of them alike. Returns, per
+    key, `timeit`'s (compile_s, median_run_s, all runs)."""
+    import jax
+
+    first = {}
+    for key, fn in fns.items():
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        first[key] = time.perf_counter() - t
+    runs: dict = {key: [] for key in fns}
+    for _ in range(repeats):
+        for key, fn in fns.items():
+            t = time.perf_counter()
+            jax.block_until_ready(fn())
+            runs[key].append(time.perf_counter() - t)
+    out = {}
+    for key, r in runs.items():
+        med = statistics.median(r)
+        out[key] = (max(first[key] - med, 0.0), med, r)
+    return out
+
+
 def run_stamp() -> str:
     """The date and time of a run, UTC, for the tables the tools write."""
     import datetime

@@ -25,11 +25,12 @@ by any reformulation that keeps the arithmetic.
 
 from __future__ import annotations
 
+import functools
 import time
 
 import numpy as np
 
-from ._measure import timeit
+from ._measure import timeit, timeit_round_robin
 
 LAYERS = (1, 10, 100)
 
@@ -214,25 +215,15 @@ def bench_stack(*, quick=False, progress=None, repeats=None, layers=LAYERS, N=No
             ns = {"shared": n1, "per point": per_point(n1, wl)}
             args = {k: tuple(jnp.asarray(x) for x in (n, d, wl, c)) for k, n in ns.items()}
             # the six programs of this layer count and dtype, timed round-robin (their ratios are
-            # then measured under the same conditions): first calls (compile), then the repeats
-            cases = {(ind, out, p): (grad if p == "gradient" else fwd[out], args[ind])
+            # then measured under the same conditions)
+            cases = {(ind, out, p): functools.partial(grad if p == "gradient" else fwd[out], *args[ind])
                      for ind in ns for out, p in (("R", "forward"), ("all", "forward"), ("R", "gradient"))}
-            first = {}
-            for key, (f, a) in cases.items():
-                t0 = time.perf_counter()
-                jax.block_until_ready(f(*a))
-                first[key] = time.perf_counter() - t0
-            runs = {key: [] for key in cases}
-            for _ in range(reps):
-                for key, (f, a) in cases.items():
-                    t0 = time.perf_counter()
-                    jax.block_until_ready(f(*a))
-                    runs[key].append(time.perf_counter() - t0)
-            med = {key: float(np.median(v)) for key, v in runs.items()}
-            for (ind, out, p), t in med.items():
+            timed = timeit_round_robin(cases, repeats=reps)
+            med = {key: t for key, (_, t, _) in timed.items()}
+            for (ind, out, p), (comp, t, _) in timed.items():
                 n = ns[ind]
                 row = dict(layers=L, dtype=name, indices=ind, points=N, tmm_per_point_s=tmm_pp[L], outputs=out, pass_=p,
-                           compile_s=max(first[ind, out, p] - t, 0.0), run_s=t, per_point_s=t / N)
+                           compile_s=comp, run_s=t, per_point_s=t / N)
                 flops = flops_per_point(L, out, gradient=p == "gradient")
                 row.update(flops=flops, floor_per_point_s=flops / floor_rate[name])
                 if p == "gradient":
