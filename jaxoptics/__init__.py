@@ -75,7 +75,7 @@ from ._io._reflectance import example_path as example_path
 from ._io._reflectance import load_reflectance as load_reflectance
 from ._io._spectra import KINDS as KINDS
 from ._io._spectra import Spectra as Spectra
-from ._io._spectra import load_spectra as load_spectra
+from ._io._load import load_spectra as load_spectra
 from ._io._spectra import make_spectra as make_spectra
 from ._io._spectra import save_spectra as save_spectra
 from ._io._model_file import load_sample as load_sample

@@ -243,9 +243,12 @@ def _fit_stack(args) -> int:
         print("fit-stack: --model MODEL.toml is required (see `python -m jaxoptics fit-stack --help`)", file=sys.stderr)
         return 2
     try:
-        spectra = jo.load_spectra(data_path)
+        spectra = jo.load_spectra(data_path, format=args.format, delta_convention=args.delta_convention,
+                                  delta_range=args.delta_range, mueller_s3_sign=args.mueller_s3_sign, angle_deg=args.angle_deg,
+                                  quantity=args.quantity, scale=args.scale, wavelength_unit=args.wavelength_unit)
         sample = jo.load_sample(model_path)
-        print(f"jaxoptics fit-stack: {data_path} with model {model_path}")
+        fmt = (spectra.meta or {}).get("format", "csv")
+        print(f"jaxoptics fit-stack: {data_path} ({fmt}) with model {model_path}")
         nsites = int(np.prod(spectra.batch_shape)) if spectra.batch_shape else 1
         print(f"{spectra.wavelength_nm.size} points ({spectra.wavelength_nm.min():g}-{spectra.wavelength_nm.max():g} nm, "
               f"angles {', '.join(f'{a:g}' for a in np.unique(spectra.angle_deg))} deg) x {', '.join(spectra.kinds)}"
@@ -394,14 +397,28 @@ def main(argv=None) -> int:
                         "$JAXOPTICS_CACHE_DIR or ~/.cache/jaxoptics/xla; JAXOPTICS_CACHE_DIR=off turns it off)")
     p.set_defaults(func=_fit)
     p = sub.add_parser("fit-stack", help="fit a layered sample to spectroscopic data (psi/delta, N/C/S, Mueller, R, T)")
-    p.add_argument("data", nargs="?", help="CSV with wavelength_nm|wavelength_um, angle_deg and measured columns "
-                   "(psi_deg, delta_deg, N, C, S, m11..m44, R, R_s, R_p, T, T_s, T_p; sigma_<column>; site for maps)")
+    p.add_argument("data", nargs="?", help="the measurement: jaxoptics' CSV (wavelength_nm|wavelength_um, angle_deg and "
+                   "measured columns psi_deg, delta_deg, N, C, S, m11..m44, R, R_s, R_p, T, T_s, T_p; sigma_<column>; site "
+                   "for maps) or an instrument's export (Woollam .dat, SpectraRay, Accurion, Horiba, Film Sense, R/T text, "
+                   "JCAMP-DX: docs/data-files), detected from its content")
     p.add_argument("--model", metavar="MODEL.toml", help="the sample: layers, materials, free parameters (format: docs/layered-fits)")
     p.add_argument("--example", action="store_true", help="the bundled example: psi/delta of a thermal SiO2 film on Si")
     p.add_argument("--starts", type=int, default=1, help="grid points refined per spectrum (default 1)")
     p.add_argument("--plot", metavar="OUT.png", help="save the measured and fitted spectra with residuals (a map's first site), "
                                                      "and for a map the fitted parameters over it as OUT_map.png")
     p.add_argument("--out", metavar="RESULTS.csv", help="per-site values and errors of a map")
+    p.add_argument("--format", help="the data file's format, instead of detecting it: csv, woollam, spectraray, accurion, "
+                                    "horiba, filmsense, text, jcamp")
+    p.add_argument("--delta-convention", default="delta", help="the file's Delta in terms of the instrument's: delta "
+                   "(default, every vendor), -delta, 180-delta (tmm's ellips), delta+180")
+    p.add_argument("--delta-range", help="-180..180 or 0..360 (checked), or 0..180: Delta folded by a rotating analyzer "
+                                         "without compensator (fitted as N and C)")
+    p.add_argument("--mueller-s3-sign", type=int, default=1, help="+1: M34 = +sin 2Psi sin Delta (default; Woollam, Sentech); "
+                                                                 "-1: M34 = -sin 2Psi sin Delta (pyElli 0.23)")
+    p.add_argument("--angle-deg", type=float, help="angle of incidence of a photometric file (text, JCAMP-DX)")
+    p.add_argument("--quantity", help="what a photometric file's value column is when it does not say: R, T, R_s, R_p, T_s, T_p")
+    p.add_argument("--scale", choices=("fraction", "percent"), help="a photometric file's scale when it does not say")
+    p.add_argument("--wavelength-unit", choices=("nm", "um", "1/cm"), help="a headerless photometric file's wavelength unit")
     p.add_argument("--no-cache", action="store_true", help="do not use the compilation cache (see `fit --help`)")
     p.set_defaults(func=_fit_stack)
 

@@ -1,6 +1,9 @@
-"""Data files and model files: reflectance curves (`_reflectance`), spectra of layered samples
-(`_spectra`: ellipsometry and photometry, from CSV or arrays), and the TOML description of a
-sample (`_model_file`).
+"""Data files and model files: reflectance curves (`_reflectance`); spectra of layered samples
+(`_spectra`: the `Spectra` container, from arrays or saved as CSV), read from any supported file by
+`_load` (`load_spectra`, format detection): jaxoptics' CSV (`_csv`), ellipsometers' exports
+(`_vendors`: Woollam, SpectraRay, Accurion, Horiba, Film Sense), spectrophotometers' R/T text
+and JCAMP-DX (`_photometry`), with the conventions of Delta and of Mueller matrices as options
+(`_conventions`); and the TOML description of a sample (`_model_file`).
 
 May import: `_core`, `_films`.
 """
