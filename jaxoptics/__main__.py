@@ -258,8 +258,9 @@ def _fit_stack(args) -> int:
     except (ValueError, ImportError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    stats = jo.fit_statistics(sample, spectra, fit)
     if not spectra.batch_shape:
-        print(fit.table())
+        print(fit.table(statistics=stats))
         i = range(len(fit.names))
         corr = np.asarray(fit.correlation)
         strong = [(fit.names[a], fit.names[b], corr[a, b]) for a in i for b in i if a < b and abs(corr[a, b]) > 0.9]
@@ -272,18 +273,23 @@ def _fit_stack(args) -> int:
         print(f"{'parameter':<24} {'mean':>14} {'std over sites':>15} {'median stderr':>14}")
         for k, n in enumerate(fit.names):
             print(f"{n:<24} {vals[:, k].mean():>14.6g} {vals[:, k].std():>15.3g} {np.median(sds[:, k]):>14.3g}")
-        print(f"converged at {int(conv.sum())} of {nsites} sites")
+        med = lambda a: f"{np.nanmedian(a):.4g}" if np.isfinite(a).any() else "n/a"
+        print(f"converged at {int(conv.sum())} of {nsites} sites; median MSE {med(stats.mse)} (WVASE), "
+              f"{med(stats.mse_ncs)} (CompleteEASE N,C,S)")
         if args.out:
             labels = spectra.sites or tuple(str(k) for k in range(nsites))
             with open(args.out, "w", encoding="utf-8") as f:
                 xy = None if spectra.site_xy is None else np.asarray(spectra.site_xy).reshape(nsites, 2)
                 where = ["x_mm", "y_mm"] if xy is not None else []
-                f.write(",".join(["site"] + where + [x for n in fit.names for x in (n, f"stderr_{n}")] + ["chi2_reduced", "converged"]) + "\n")
+                f.write(",".join(["site"] + where + [x for n in fit.names for x in (n, f"stderr_{n}", f"ci90_{n}")]
+                                 + ["chi2_reduced", "mse", "mse_ncs", "converged"]) + "\n")
                 chi = np.asarray(fit.chi2_reduced).reshape(nsites)
+                ci = np.asarray(stats.ci90).reshape(nsites, -1)
+                mse, mse_ncs = (np.asarray(a).reshape(nsites) for a in (stats.mse, stats.mse_ncs))
                 for s in range(nsites):
                     cells = [labels[s]] + ([repr(float(c)) for c in xy[s]] if xy is not None else [])
-                    cells += [repr(float(x)) for k in range(len(fit.names)) for x in (vals[s, k], sds[s, k])]
-                    f.write(",".join(cells + [repr(float(chi[s])), str(bool(conv[s]))]) + "\n")
+                    cells += [repr(float(x)) for k in range(len(fit.names)) for x in (vals[s, k], sds[s, k], ci[s, k])]
+                    f.write(",".join(cells + [repr(float(v)) for v in (chi[s], mse[s], mse_ncs[s])] + [str(bool(conv[s]))]) + "\n")
             print(f"per-site results written to {args.out}")
     poor = not bool(np.all(np.asarray(fit.converged))) or float(np.max(np.asarray(fit.chi2_reduced))) > 4
     if not bool(np.all(np.asarray(fit.converged))):

@@ -457,10 +457,12 @@ material = "Si"
     mean = float(next(l for l in out.splitlines() if l.startswith("film.thickness_nm")).split()[1])
     assert abs(mean - d_true.mean()) < 0.1
     rows = (tmp_path / "res.csv").read_text().splitlines()
-    assert rows[0] == "site,x_mm,y_mm,film.thickness_nm,stderr_film.thickness_nm,chi2_reduced,converged"
+    assert rows[0] == "site,x_mm,y_mm,film.thickness_nm,stderr_film.thickness_nm,ci90_film.thickness_nm,chi2_reduced,mse,mse_ncs,converged"
     for row, d, at in zip(rows[1:], d_true, xy, strict=True):
-        site, x, y, value, sd, chi2, conv = row.split(",")
+        site, x, y, value, sd, ci90, chi2, mse, mse_ncs, conv = row.split(",")
         assert abs(float(value) - d) < 4 * float(sd) and conv == "True" and 0.5 < float(chi2) < 2
+        assert float(mse) == pytest.approx(float(chi2) ** 0.5) and float(mse_ncs) > 0
+        assert float(ci90) == pytest.approx(1.65 * float(sd) / max(1, float(chi2)) ** 0.5 * float(mse) ** 0.5)
         assert (float(x), float(y)) == tuple(at)
     assert [r.split(",")[0] for r in rows[1:]] == [f"p{i}" for i in range(6)]
     assert f"plot saved to {png} (site p0)" in out and f"maps of the fitted parameters saved to {tmp_path / 'fit_map.png'}" in out

@@ -122,17 +122,26 @@ class StackFit:
     def stderr_of(self, name):
         return self.stderr[..., self._index(name)]
 
-    def table(self, site=None) -> str:
-        """A text table of values, standard errors and flags for one site."""
+    def table(self, site=None, statistics=None) -> str:
+        """A text table of values, standard errors and flags for one site; with `statistics`
+        (`fit_statistics(sample, spectra, fit)`) also the WVASE and CompleteEASE MSE and the 90%
+        confidence limits."""
         sl = (lambda a: a) if self.values.ndim == 1 else (lambda a: np.asarray(a).reshape((-1,) + a.shape[self.values.ndim - 1:])[site or 0])
         v, s, b = (np.asarray(sl(x)) for x in (self.values, self.stderr, self.at_bound))
         w = max(len(n) for n in self.names)
-        rows = [f"{'parameter':<{w}}  {'value':>14}  {'stderr':>12}"]
+        ci = None if statistics is None else np.asarray(sl(np.asarray(statistics.ci90)))
+        rows = [f"{'parameter':<{w}}  {'value':>14}  {'stderr':>12}" + ("  90% limit" if ci is not None else "")]
         for i, n in enumerate(self.names):
-            rows.append(f"{n:<{w}}  {v[i]:>14.6g}  {s[i]:>12.3g}" + ("  (at a bound)" if b[i] else ""))
+            rows.append(f"{n:<{w}}  {v[i]:>14.6g}  {s[i]:>12.3g}" + (f"  +-{ci[i]:<8.3g}" if ci is not None else "")
+                        + ("  (at a bound)" if b[i] else ""))
         chi = float(np.asarray(sl(self.chi2_reduced[..., None]))[0])
         conv = bool(np.asarray(sl(self.converged[..., None]))[0])
         rows.append(f"chi2_reduced {chi:.4g}; converged {conv}; sigma {'from the data' if self.sigma_given else 'estimated from the fit'}")
+        if statistics is not None:
+            mse = float(np.asarray(sl(np.asarray(statistics.mse)[..., None]))[0])
+            ncs = float(np.asarray(sl(np.asarray(statistics.mse_ncs)[..., None]))[0])
+            rows.append(f"MSE {mse:.4g} (WVASE: sigma-weighted, {statistics.n_data} data - {statistics.n_params}); "
+                        f"MSE {ncs:.4g} (CompleteEASE: N, C, S x1000, {statistics.n_ncs} data - {statistics.n_params})")
         return "\n".join(rows)
 
 
