@@ -102,6 +102,8 @@ _LAZY = {
     "DispersionFit": "._fitting._dispersion_fit",
     "fit_stack": "._fitting._stack_fit",
     "StackFit": "._fitting._stack_fit",
+    "fit_joint": "._fitting._joint",
+    "Dataset": "._fitting._joint",
     "fit_statistics": "._fitting._statistics",
     "FitStatistics": "._fitting._statistics",
     "plot_fit": "._fitting._plot",
@@ -118,6 +120,8 @@ if _typing.TYPE_CHECKING:
     from ._fitting._dispersion_fit import fit_dispersion as fit_dispersion
     from ._fitting._stack_fit import StackFit as StackFit
     from ._fitting._stack_fit import fit_stack as fit_stack
+    from ._fitting._joint import Dataset as Dataset
+    from ._fitting._joint import fit_joint as fit_joint
     from ._fitting._statistics import FitStatistics as FitStatistics
     from ._fitting._statistics import fit_statistics as fit_statistics
     from ._fitting._plot import plot_dispersion_fit as plot_dispersion_fit

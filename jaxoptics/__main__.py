@@ -233,8 +233,13 @@ def _fit_stack(args) -> int:
     jax.config.update("jax_enable_x64", True)
     import jaxoptics as jo
 
+    from ._fitting._joint import is_joint_file
+
+    if args.model and not args.data and not args.example and is_joint_file(args.model):
+        return _fit_joint(args)
     if args.example == bool(args.data):
-        print("fit-stack: give a data file and --model, or --example", file=sys.stderr)
+        print("fit-stack: give a data file and --model, or --example, or a joint fit's --model listing [[dataset]]s",
+              file=sys.stderr)
         return 2
     data_dir = Path(jo.__file__).parent / "data"
     data_path = data_dir / "example_sio2_si.csv" if args.example else Path(args.data)
@@ -323,6 +328,38 @@ def _fit_stack(args) -> int:
     return 0
 
 
+def _fit_joint(args) -> int:
+    """`fit-stack --model joint.toml`: the data sets the file lists, fitted together."""
+    import numpy as np
+
+    import jaxoptics as jo
+
+    from ._fitting._joint import load_joint
+
+    try:
+        datasets, shared = load_joint(args.model)
+        print(f"jaxoptics fit-stack: joint fit of {len(datasets)} data sets from {args.model}")
+        for k, d in enumerate(datasets):
+            sp = d.spectra
+            print(f"  {d.name or f'data{k + 1}'}: {sp.path} ({(sp.meta or {}).get('format', 'csv')}), {sp.wavelength_nm.size} "
+                  f"points x {', '.join(sp.kinds)}, weight {d.weight:g}")
+        fit = jo.fit_joint(datasets, shared=shared)
+    except (ValueError, ImportError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if fit.values.ndim == 1:
+        print(fit.table())
+    else:
+        vals = np.asarray(fit.values).reshape(-1, len(fit.names))
+        print(f"{'parameter':<32} {'mean':>14} {'std over sites':>15}")
+        for k, n in enumerate(fit.names):
+            print(f"{n:<32} {vals[:, k].mean():>14.6g} {vals[:, k].std():>15.3g}")
+        print(f"converged at {int(np.sum(fit.converged))} of {vals.shape[0]} sites")
+    if not bool(np.all(np.asarray(fit.converged))):
+        print("warning: some fits did not converge", file=sys.stderr)
+    return 0
+
+
 def _plot_fits(fits, args, title):
     import matplotlib
 
@@ -407,7 +444,9 @@ def main(argv=None) -> int:
                    "measured columns psi_deg, delta_deg, N, C, S, m11..m44, R, R_s, R_p, T, T_s, T_p; sigma_<column>; site "
                    "for maps) or an instrument's export (Woollam .dat, SpectraRay, Accurion, Horiba, Film Sense, R/T text, "
                    "JCAMP-DX: docs/data-files), detected from its content")
-    p.add_argument("--model", metavar="MODEL.toml", help="the sample: layers, materials, free parameters (format: docs/layered-fits)")
+    p.add_argument("--model", metavar="MODEL.toml", help="the sample: layers, materials, free parameters (format: docs/layered-fits); "
+                                                         "or, without a data file, a joint fit listing [[dataset]]s (data, model, weight) "
+                                                         "and shared parameters")
     p.add_argument("--example", action="store_true", help="the bundled example: psi/delta of a thermal SiO2 film on Si")
     p.add_argument("--starts", type=int, default=1, help="grid points refined per spectrum (default 1)")
     p.add_argument("--plot", metavar="OUT.png", help="save the measured and fitted spectra with residuals (a map's first site), "

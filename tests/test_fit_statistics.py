@@ -31,6 +31,7 @@ def _sample():
     return jo.Sample([jo.Layer(N_FILM, jo.Free(150.0, 0.0, 400.0), name="film")], N_SUB)
 
 
+@pytest.mark.slow
 def test_mse_ncs_mse_and_confidence_limits_by_hand():
     wl, ang = np.tile(WL, len(ANG)), np.repeat(ANG, len(WL))
     rng = np.random.default_rng(7)
@@ -63,6 +64,7 @@ def test_mse_ncs_mse_and_confidence_limits_by_hand():
     assert "90% confidence" in st.table(site=1) and "MSE (WVASE" in st.table()
 
 
+@pytest.mark.slow
 def test_photometric_data_have_no_ncs_mse_and_unweighted_data_no_wvase_mse():
     wl = WL
     R = np.asarray([tmm.coh_tmm("s", [1.0, N_FILM, N_SUB], [np.inf, 200.0, np.inf], 0.0, w)["R"] for w in wl])

@@ -298,6 +298,7 @@ def _wrap(d):
     return (np.asarray(d) + 180.0) % 360.0 - 180.0
 
 
+@pytest.mark.slow
 def test_delta_conventions_round_trip_through_a_fit(tmp_path):
     """A file written in each Delta convention (tmm's own `ellips` Delta is "180-delta") and read
     with that option gives the instrument's Delta; all of them, as one map, fit back to the film.
@@ -322,6 +323,7 @@ def test_delta_conventions_round_trip_through_a_fit(tmp_path):
     assert np.asarray(fit.chi2_reduced)[4] > 100
 
 
+@pytest.mark.slow
 def test_folded_delta_is_read_as_n_and_c_and_fits(tmp_path):
     """A rotating analyzer without compensator folds Delta into [0, 180]: read with
     delta_range="0..180" the file gives N and C, which fit back to the film; read as a full Delta
@@ -341,6 +343,7 @@ def test_folded_delta_is_read_as_n_and_c_and_fits(tmp_path):
     assert np.max(np.abs(_wrap(as_full.values[1] - delta))) > 10  # the fold is not undone by reading it as full
 
 
+@pytest.mark.slow
 def test_mueller_s3_sign_round_trip_through_a_fit(tmp_path):
     """Normalized Mueller matrices written with M34 = +S (Sentech, Woollam) and with M34 = -S
     (pyElli 0.23), each read with its sign, give the same N, C, S and fit back to the film; read
@@ -376,6 +379,7 @@ def test_psi_delta_of_jaxoptics_and_tmm_are_the_180_minus_delta_convention():
     np.testing.assert_allclose(_wrap(delta_from_instrument(delta[:5], "180-delta") - ours), 0, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_cli_fit_stack_reads_an_instrument_file_with_its_conventions(tmp_path, capsys):
     """`fit-stack` on a Woollam export (detected) whose Delta is tmm's, with --delta-convention."""
     from jaxoptics.__main__ import main
