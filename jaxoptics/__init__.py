@@ -79,6 +79,7 @@ from ._io._load import load_spectra as load_spectra
 from ._io._spectra import make_spectra as make_spectra
 from ._io._spectra import save_spectra as save_spectra
 from ._io._model_file import load_sample as load_sample
+from ._io._nk_file import load_nk as load_nk
 
 # the fits' model of a reflectance curve (the rest of the fitting names: `_LAZY`)
 from ._fitting._index_model import synthetic_reflectance as synthetic_reflectance

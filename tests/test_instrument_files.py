@@ -398,3 +398,76 @@ def test_cli_fit_stack_reads_an_instrument_file_with_its_conventions(tmp_path, c
     assert main(["fit-stack", str(tmp_path / "m.dat"), "--model", str(tmp_path / "m.toml"), "--delta-convention", "180+delta",
                  "--no-cache"]) == 2
     assert "delta_convention='180+delta': must be one of" in capsys.readouterr().err
+
+
+def _nexus(path, layout, psi, delta, wl_values, wl_units, aoi, sigma=None, data_type=None):
+    h5py = pytest.importorskip("h5py")
+    with h5py.File(path, "w") as f:
+        e = f.create_group("entry")
+        if layout == "NXellipsometry":
+            dc = e.create_group("data_collection")
+            dc["data_type"] = data_type or "Psi/Delta"
+            dc["measured_data"] = np.stack([psi, delta], axis=1)  # (angles, observables, spectrum)
+            if sigma is not None:
+                dc["data_error"] = np.broadcast_to(np.asarray(sigma)[None, :, None], (len(aoi), 2, len(wl_values))).copy()
+            dc["wavelength_spectrum"] = wl_values
+            if wl_units:
+                dc["wavelength_spectrum"].attrs["units"] = wl_units
+        else:
+            s = e.create_group("sample")
+            s["data_type"] = data_type or "psi/delta"
+            s["measured_data"] = np.stack([psi, delta], axis=1)[None, None]
+            e.create_group("instrument/spectrometer")
+            e["instrument/spectrometer/wavelength"] = wl_values
+            if wl_units:
+                e["instrument/spectrometer/wavelength"].attrs["units"] = wl_units
+        e["instrument/angle_of_incidence"] = np.asarray(aoi, float)
+        e["instrument/angle_of_incidence"].attrs["units"] = "degree"
+
+
+@pytest.mark.parametrize("layout, wl_values, units, assumed", [
+    ("NXellipsometry", [4000.0, 5000.0, 6000.0], "angstrom", False),
+    ("NXellipsometry", [400.0, 500.0, 600.0], "nm", False),       # the unit is read, not assumed to be Angstrom
+    ("legacy", [4000.0, 5000.0, 6000.0], None, True),              # the definition's default, stated
+])
+def test_nexus_nxellipsometry_both_layouts_units_honoured(tmp_path, layout, wl_values, units, assumed):
+    psi = np.array([[20.0, 21.0, 22.0], [30.0, 31.0, 32.0]])
+    delta = np.array([[100.0, 110.0, 120.0], [200.0, 210.0, 220.0]])
+    p = tmp_path / "m.nxs"
+    _nexus(p, layout, psi, delta, np.asarray(wl_values), units, [60.0, 70.0],
+           sigma=(0.01, 0.02) if layout == "NXellipsometry" else None)
+    sp = jo.load_spectra(p)
+    assert sp.meta["format"] == "nexus" and sp.meta["layout"] == layout
+    np.testing.assert_allclose(sp.wavelength_nm, [400.0, 500.0, 600.0] * 2)
+    np.testing.assert_array_equal(sp.angle_deg, [60.0] * 3 + [70.0] * 3)
+    np.testing.assert_array_equal(sp.values, [psi.ravel(), delta.ravel()])
+    assert bool(sp.meta["assumed_units"]) == assumed
+    if layout == "NXellipsometry":
+        np.testing.assert_array_equal(sp.sigma[0], 0.01)
+    _nexus(p, layout, psi, delta, np.asarray(wl_values), "furlong", [60.0, 70.0])
+    with pytest.raises(ValueError, match=r"m.nxs, entry/.*wavelength.*: units 'furlong'"):
+        jo.load_spectra(p)
+
+
+def test_nk_tables_and_the_sign_of_k(tmp_path):
+    """n, k tables: as written when k >= 0; a table of the n - ik convention with negative k is
+    refused unless k_sign='-'; e1, e2 in eV from a SpectraRay .mat converted by the principal root."""
+    lam = np.array([400.0, 500.0, 600.0])
+    n, k = np.array([4.0, 3.9, 3.8]), np.array([0.5, 0.2, 0.1])
+    p = tmp_path / "si_nk.csv"
+    p.write_text("wavelength_nm,n,k\n" + "\n".join(f"{a},{b},{c}" for a, b, c in zip(lam, n, k)) + "\n")
+    m = jo.load_nk(p)
+    np.testing.assert_allclose(np.asarray(m.nk(lam / 1000)), n + 1j * k)
+    p.write_text("wavelength_nm,n,k\n" + "\n".join(f"{a},{b},{-c}" for a, b, c in zip(lam, n, k)) + "\n")
+    with pytest.raises(ValueError, match=r"si_nk.csv, line 2: k = -0.5: every nonzero k is negative.*k_sign='-'"):
+        jo.load_nk(p)
+    np.testing.assert_allclose(np.asarray(jo.load_nk(p, k_sign="-").nk(lam / 1000)), n + 1j * k)
+    p.write_text("wavelength_nm,n,k\n400,4.0,0.5\n500,3.9,-0.2\n")
+    with pytest.raises(ValueError, match="line 3: k = -0.2 while others are positive"):
+        jo.load_nk(p)
+    E = 1239.8419843320026 / lam
+    eps = (n + 1j * k) ** 2
+    mat = tmp_path / "Si.mat"
+    mat.write_text("###### File Layer=3\nUnits=eV,E1E2\nBegin of array\n"
+                   + "\n".join(f"{float(e)!r} {float(z.real)!r} {float(z.imag)!r}" for e, z in zip(E, eps)) + "\nEnd of array\n")
+    np.testing.assert_allclose(np.asarray(jo.load_nk(mat).nk(lam / 1000)), n + 1j * k, rtol=1e-9)

