@@ -106,6 +106,9 @@ _LAZY = {
     "fit_joint": "._fitting._joint",
     "Dataset": "._fitting._joint",
     "fit_statistics": "._fitting._statistics",
+    "absolute_reflectance": "._fitting._reflectometry",
+    "fft_thickness": "._fitting._reflectometry",
+    "ThicknessEstimate": "._fitting._reflectometry",
     "FitStatistics": "._fitting._statistics",
     "plot_fit": "._fitting._plot",
     "plot_dispersion_fit": "._fitting._plot",
@@ -123,6 +126,9 @@ if _typing.TYPE_CHECKING:
     from ._fitting._stack_fit import fit_stack as fit_stack
     from ._fitting._joint import Dataset as Dataset
     from ._fitting._joint import fit_joint as fit_joint
+    from ._fitting._reflectometry import ThicknessEstimate as ThicknessEstimate
+    from ._fitting._reflectometry import absolute_reflectance as absolute_reflectance
+    from ._fitting._reflectometry import fft_thickness as fft_thickness
     from ._fitting._statistics import FitStatistics as FitStatistics
     from ._fitting._statistics import fit_statistics as fit_statistics
     from ._fitting._plot import plot_dispersion_fit as plot_dispersion_fit

@@ -183,7 +183,7 @@ def _data_index(model, lam_um):
     return None
 
 
-def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, starts: int = 1,
+def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool | str = True, starts: int = 1,
               max_grid: int = 4096, max_steps: int = 200, progress: bool = False, mesh: Mesh | None = None) -> StackFit:
     """Fit the `Free` parameters of `sample` to `spectra` (one spectrum or a map of them).
 
@@ -193,7 +193,11 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     - `spectra`: `Spectra` (`load_spectra`, `make_spectra`); leading axes of its values are
       map sites, all fitted together (each compiled call covers the whole map).
     - `global_start`: search each free thickness with a finite upper bound on a grid first (see
-      the module docstring); `False` starts from the `Free` values.
+      the module docstring); `False` starts from the `Free` values; `"fft"` (a thick film's
+      reflectance or transmittance, one free thickness): search only around the thickness the
+      Fourier transform of each spectrum gives (`fft_thickness`), over all sites' estimates
+      widened by three resolutions and the film's dispersion, so that films of tens of
+      micrometres, many hundreds of fringes, need a grid of tens of points.
     - `starts`: how many of the best grid points to refine; the lowest chi^2 wins.
     - `max_grid`: the most grid points per spectrum (several free thicknesses share this budget).
     - `max_steps`: Levenberg-Marquardt steps per start.
@@ -248,8 +252,16 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool = True, st
     pad = lambda a: np.concatenate([a, np.broadcast_to(a[-1:], (Bp - B,) + a.shape[1:])]) if Bp > B else a
     V, S = pad(V), pad(S)
     # the fit of one block of sites (the whole map without a mesh), the same on every device
+    if global_start == "fft":
+        from ._reflectometry import fft_window
+
+        start: bool | tuple = ("window",) + fft_window(sample, spectra)
+    elif isinstance(global_start, str):
+        raise ValueError(f"global_start={global_start!r}: True, False or 'fft'")
+    else:
+        start = bool(global_start)
     key = (sample, kinds, tuple(map(float, spectra.wavelength_nm)), tuple(map(float, spectra.angle_deg)), Bs,
-           dtype.name, sigma_given, bool(global_start), int(starts), int(max_grid), int(max_steps), bool(progress))
+           dtype.name, sigma_given, start, int(starts), int(max_grid), int(max_steps), bool(progress))
     try:
         hash(key)
     except TypeError:  # a model holding lists or arrays: compiled for this call only

@@ -186,7 +186,7 @@ def grid_subset(wl_nm, n_max, d_max):
     return np.flatnonzero(np.isin(sigma, kept))
 
 
-def fringe_grid(sample, free, x0, lam, dtype, max_grid):
+def fringe_grid(sample, free, x0, lam, dtype, max_grid, window=None):
     """`(grid, sub)`: the grid of starts over the free thicknesses with finite upper bounds and the
     indices of the data points it is scored on, or `(None, all points)` where there is no such
     thickness.
@@ -196,9 +196,13 @@ def fringe_grid(sample, free, x0, lam, dtype, max_grid):
     the data), so that a grid point lies well inside the basin of the true minimum; several share
     a product grid, coarsened to at most `max_grid` points. The other parameters sit at `x0`. The
     subset of points samples the fringes of all the films together at least four times per
-    period (`grid_subset`)."""
+    period (`grid_subset`). `window = (i, low, high)` searches free thickness `i` over that range
+    instead of its bounds (the Fourier-transform start, `_reflectometry.fft_window`)."""
     P, p = lam.shape[0], len(free)
-    tidx = [i for i, f in enumerate(free) if f.is_thickness and math.isfinite(f.upper)]
+    span = {i: (f.lower, f.upper) for i, f in enumerate(free)}
+    if window is not None:
+        span[window[0]] = (window[1], window[2])
+    tidx = [i for i, f in enumerate(free) if f.is_thickness and math.isfinite(span[i][1])]
     if not tidx:
         return None, np.arange(P)
     fixed = sample.fixed()
@@ -211,7 +215,7 @@ def fringe_grid(sample, free, x0, lam, dtype, max_grid):
         nmax = float(np.nanmax(np.abs(N))) if np.any(np.isfinite(N)) else 2.0
         nmax_all = max(nmax_all, nmax)
         step = lam.min() / (2 * nmax) / 8
-        axes.append((free[i].lower, free[i].upper, step))
+        axes.append((span[i][0], span[i][1], step))
     counts = [max(2, int(math.ceil((hi - lo) / st)) + 1) for lo, hi, st in axes]
     while math.prod(counts) > max_grid:
         j = int(np.argmax(counts))
@@ -225,7 +229,7 @@ def fringe_grid(sample, free, x0, lam, dtype, max_grid):
         lo, hi = free[i].lower, free[i].upper
         eps = 1e-6 * (hi - lo)
         grid[:, i] = np.clip(grid[:, i], lo + eps, hi - eps)
-    dmax = sum(free[i].upper for i in tidx)
+    dmax = sum(span[i][1] for i in tidx)
     return grid, grid_subset(lam, nmax_all, dmax)
 
 
@@ -239,7 +243,8 @@ def build_problem(sample, kinds, wl_nm, angle_deg, B, dtype_name, sigma_given, g
     lam = np.asarray(wl_nm)
     bounds = tuple(_Bound(f.lower, f.upper) for f in free)
     x0 = np.asarray([b.inside(f.value) for f, b in zip(free, bounds)], np.float64)
-    grid, sub = fringe_grid(sample, free, x0, lam, dtype, max_grid) if global_start else (None, np.arange(P))
+    window = global_start[1:] if isinstance(global_start, tuple) else None  # ("window", i, low, high)
+    grid, sub = fringe_grid(sample, free, x0, lam, dtype, max_grid, window) if global_start else (None, np.arange(P))
     # A map's Gauss-Newton runs in two passes where the grid's subset of wavelengths holds at most
     # half of the data: first on that subset, to a step below 0.1 of the subset's standard errors,
     # then on all the data from there, which then takes two or three steps. (A small fit, compiled
