@@ -134,6 +134,8 @@ def test_woollam_completeease6_blocks_units_and_inf(tmp_path):
     np.testing.assert_array_equal(sp.angle_deg, [60.0] * 3 + [70.0] * 3)
     np.testing.assert_array_equal(sp.meta["depolarization_percent"], [60.5, 61.5, 62.5, 70.5, 71.5, 72.5])
     assert np.all(np.isnan(sp.meta["uR"]))
+    _woollam(tmp_path / "neg.dat", [[500, 70, 20, -35.5, 0.01, 0.02], [600, 70, 21, -179.9, 0.01, 0.02]])  # negative Delta
+    np.testing.assert_array_equal(jo.load_spectra(tmp_path / "neg.dat").values[1], [-35.5, -179.9])
     for unit, x, nm in (("eV", 2.0, 1239.8419843320026 / 2), ("1/cm", 20000.0, 500.0), ("nm", 633.0, 633.0)):
         _woollam(tmp_path / "u.dat", [[x, 70, 20, 100]], units=unit)
         assert jo.load_spectra(tmp_path / "u.dat").wavelength_nm[0] == pytest.approx(nm, rel=1e-12)
@@ -471,3 +473,21 @@ def test_nk_tables_and_the_sign_of_k(tmp_path):
     mat.write_text("###### File Layer=3\nUnits=eV,E1E2\nBegin of array\n"
                    + "\n".join(f"{float(e)!r} {float(z.real)!r} {float(z.imag)!r}" for e, z in zip(E, eps)) + "\nEnd of array\n")
     np.testing.assert_allclose(np.asarray(jo.load_nk(mat).nk(lam / 1000)), n + 1j * k, rtol=1e-9)
+
+
+@pytest.mark.slow
+def test_nk_table_of_the_other_sign_round_trip_through_a_fit(tmp_path):
+    """The substrate's n, k written as a tool of the n - ik convention writes absorption (k < 0),
+    read with k_sign='-' in the sample's TOML, fits the film back from tmm's Psi/Delta."""
+    wl, ang, psi, delta = _truth()
+    w = np.linspace(350.0, 950.0, 13)
+    (tmp_path / "sub.csv").write_text("wavelength_nm,n,k\n" + "\n".join(f"{x},3.9,-0.02" for x in w) + "\n")
+    (tmp_path / "m.toml").write_text('[[layer]]\nthickness_nm = { value = 150, min = 0, max = 400 }\nmaterial = { n = 1.46 }\n'
+                                     '[substrate]\nmaterial = { file = "sub.csv", k_sign = "-" }\n')
+    sample = jo.load_sample(tmp_path / "m.toml")
+    sp = jo.make_spectra(wl, ang, {"psi_deg": psi, "delta_deg": delta})
+    fit = jo.fit_stack(sample, sp)
+    assert float(fit[fit.names[0]]) == pytest.approx(D_TRUE, abs=1e-6)
+    (tmp_path / "m.toml").write_text((tmp_path / "m.toml").read_text().replace(', k_sign = "-"', ""))
+    with pytest.raises(ValueError, match="k_sign='-'"):
+        jo.load_sample(tmp_path / "m.toml")
