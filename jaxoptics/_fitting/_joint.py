@@ -264,19 +264,13 @@ def load_joint(path) -> tuple[list[Dataset], tuple | None]:
     photometric options; an optional top-level `shared = [...]` (parameter names). Paths are
     relative to the TOML file. Returns the `Dataset`s and `shared` (None when not given). Errors
     name the file and the key (`dataset[1].model`)."""
-    import tomllib
     from pathlib import Path
 
     from .._io._load import load_spectra
-    from .._io._model_file import load_sample
+    from .._io._model_file import load_sample, read_toml
 
     path = Path(path)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as e:
-        raise ValueError(f"{path}: cannot read ({e.strerror})") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"{path}: not valid TOML: {e}") from None
+    doc = read_toml(path)
     unknown = set(doc) - {"dataset", "shared", "title"}
     if unknown:
         raise ValueError(f"{path}: unknown top-level keys {sorted(unknown)} (known: dataset, shared, title)")

@@ -111,17 +111,23 @@ def _material(v, where, base: Path):
         raise _Err(f"{where}: {e}") from None
 
 
+def read_toml(path: Path) -> dict:
+    """A TOML file's table, with an error naming the file (and the line and column of a syntax
+    error)."""
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise ValueError(f"{path}: cannot read ({e.strerror})") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"{path}: not valid TOML: {e}") from None
+
+
 def load_sample(path: str | Path) -> Sample:
     """Read a layered-sample model from a TOML file (format in this module's docstring). Errors
     name the file and the key (`layer[1].material.A`), or the line and column of a TOML syntax
     error."""
     path = Path(path)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as e:
-        raise ValueError(f"{path}: cannot read ({e.strerror})") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"{path}: not valid TOML: {e}") from None
+    doc = read_toml(path)
     try:
         unknown = set(doc) - {"ambient", "layer", "substrate", "title"}
         if unknown:
