@@ -341,26 +341,33 @@ class Tabulated(_ByContent, Dispersion):
 
 
 def _walk(value, path):
-    """Yield `(path, leaf)` for the numeric leaves of a parameter field (numbers, `Free`, tuples)."""
+    """Yield `(path, leaf)` for the numeric leaves of a parameter field (numbers, `Free`, tuples,
+    and the parameters of a model held in it: an effective medium's constituents)."""
     if isinstance(value, (tuple, list)):
         for i, v in enumerate(value):
             yield from _walk(v, path + (i,))
+    elif isinstance(value, Dispersion):
+        for field in value._params:
+            yield from _walk(getattr(value, field), path + (field,))
     else:
         yield path, value
 
 
 def parameter_leaves(model: Dispersion):
-    """`[(name, leaf)]` for every parameter of `model`, named like `B` or `lorentz[0][1]`."""
+    """`[(name, leaf)]` for every parameter of `model`, named like `B`, `lorentz[0][1]` or
+    `host.A` (a parameter of a constituent model)."""
     out = []
     for field in model._params:
         for path, leaf in _walk(getattr(model, field), ()):
-            out.append((field + "".join(f"[{i}]" for i in path), leaf))
+            out.append((field + "".join(f".{i}" if isinstance(i, str) else f"[{i}]" for i in path), leaf))
     return out
 
 
 def _replace(value, it):
     if isinstance(value, (tuple, list)):
         return tuple(_replace(v, it) for v in value)
+    if isinstance(value, Dispersion):
+        return dataclasses.replace(value, **{f: _replace(getattr(value, f), it) for f in value._params})
     return next(it) if isinstance(value, Free) else value
 
 

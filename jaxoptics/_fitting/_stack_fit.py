@@ -145,9 +145,25 @@ class StackFit:
         return "\n".join(rows)
 
 
+def _models(sample: Sample):
+    """`(owner, model)` for every medium's model and the models inside it (an effective medium's
+    constituents, named `owner.host`, ...)."""
+    from .._films._dispersion import Dispersion
+
+    def walk(owner, model):
+        yield owner, model
+        for f in model._params:
+            v = getattr(model, f)
+            if isinstance(v, Dispersion):
+                yield from walk(f"{owner}.{f}", v)
+
+    for owner, model in sample._slots():
+        yield from walk(owner, model)
+
+
 def _check_ranges(sample: Sample, spectra: Spectra):
     lam_um = np.asarray(spectra.wavelength_nm) / 1000
-    for owner, model in sample._slots():
+    for owner, model in _models(sample):
         tab = type(model).__name__ == "Tabulated" or getattr(model, "k_table", None) is not None
         rng = getattr(model, "range_um", None)
         if tab and rng is not None and (lam_um.min() < rng[0] - 1e-12 or lam_um.max() > rng[1] + 1e-12):
@@ -156,7 +172,7 @@ def _check_ranges(sample: Sample, spectra: Spectra):
     # every constant or tabulated medium's index at the data's wavelengths is one the stack takes:
     # finite, n > 0, k >= 0 (a database table or formula can give NaN beyond a k table, or gain)
     wl = np.unique(np.asarray(spectra.wavelength_nm))
-    for owner, model in sample._slots():
+    for owner, model in _models(sample):
         N = _data_index(model, wl / 1000)
         if N is None:
             continue

@@ -22,6 +22,10 @@ A number is a fixed parameter; a table `{ value = ..., min = ..., max = ... }` i
 - `{ file = "my_nk.csv", k_sign = "-" }`: a table of `n, k` or `e1, e2` against wavelength
   (`load_nk`; `k_sign` and `wavelength_unit` as there), relative to the TOML file;
 - `{ n = 1.5, k = 0 }`: a constant index;
+- `{ ema = "bruggeman", host = <material>, inclusion = <material>, fraction = ..., depolarization
+  = 0.333 }`: an effective medium (`EMA`; `ema` also `"maxwell-garnett"`, `"looyenga"`,
+  `"linear"`); a surface roughness layer is one of the film below with `inclusion = 1.0` (void)
+  and `fraction = 0.5`;
 - `{ model = "cauchy", A, B, C, k_amp, k_exp, E_band }`, `{ model = "sellmeier", B = [..], C = [..],
   eps_inf }`, `{ model = "tauc-lorentz", A, E0, C, Eg, eps_inf }`,
   `{ model = "drude-lorentz", eps_inf, drude = [[wp, gamma], ...], lorentz = [[f, E0, gamma], ...] }`:
@@ -90,6 +94,20 @@ def _material(v, where, base: Path):
             return load_nk(f, k_sign=v.get("k_sign"), wavelength_unit=v.get("wavelength_unit"))
     except (ValueError, ImportError, OSError) as e:
         raise _Err(f"{where}: {e}") from None
+    if "ema" in v:
+        from .._films._ema import EMA, METHODS
+
+        extra = set(v) - {"ema", "host", "inclusion", "fraction", "depolarization"}
+        if extra or "host" not in v or "inclusion" not in v or "fraction" not in v:
+            raise _Err(f"{where}: an effective medium is {{ ema = \"bruggeman\", host = ..., inclusion = ..., fraction = ... "
+                       f"[, depolarization = 0.333] }}; got keys {sorted(v)}")
+        if v["ema"] not in METHODS:
+            raise _Err(f"{where}.ema: {v['ema']!r}; known: {', '.join(METHODS)}")
+        try:
+            return EMA(_material(v["host"], f"{where}.host", base), _material(v["inclusion"], f"{where}.inclusion", base),
+                       _param(v["fraction"], f"{where}.fraction"), v["ema"], float(v.get("depolarization", 1 / 3)))
+        except ValueError as e:
+            raise _Err(f"{where}: {e}") from None
     if "model" not in v:
         if set(v) <= {"n", "k"} and "n" in v:
             return Constant(n=_param(v["n"], f"{where}.n"), k=_param(v.get("k", 0.0), f"{where}.k"))
