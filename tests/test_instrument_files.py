@@ -491,3 +491,26 @@ def test_nk_table_of_the_other_sign_round_trip_through_a_fit(tmp_path):
     (tmp_path / "m.toml").write_text((tmp_path / "m.toml").read_text().replace(', k_sign = "-"', ""))
     with pytest.raises(ValueError, match="k_sign='-'"):
         jo.load_sample(tmp_path / "m.toml")
+
+
+def test_the_values_refellips_own_tests_publish():
+    """refellips' test suite (BSD-3) states values its readers give for these files; ours agree:
+    the EP4 zone average at 70 degrees, Film Sense's Psi/Delta (here from the N, C, S read, in the
+    instrument convention), and the Woollam Dynamic times (written in minutes; refellips gives
+    seconds)."""
+    assert jo.load_spectra(DATA / "15-1-1.dat").values[0, -1] == pytest.approx(12.72666667, abs=1e-8)
+
+    def psi_delta(sp, k=None):
+        N, C, S = sp.values if k is None else sp.values[k]
+        return np.degrees(np.arccos(N)) / 2, np.degrees(np.arctan2(S, C)) % 360
+
+    static = np.array([[26.46, 158.74], [15.77, 173.19], [12.64, 174.05], [11.13, 174.54], [10.25, 174.92],
+                       [9.51, 175.37], [8.76, 175.98], [8.35, 176.36]]).T
+    np.testing.assert_allclose(psi_delta(jo.load_spectra(DATA / "Filmsense_staticTest.txt")), static, rtol=1e-3)
+    dyn = jo.load_spectra(DATA / "Filmsense_kineticTest.txt")
+    np.testing.assert_allclose(dyn.meta["times"], [4.95, 14.86, 24.77, 34.66, 44.57, 54.48, 64.38], rtol=1e-3)
+    third = np.array([[27.04, 148.91], [16.09, 162.67], [12.91, 163.83], [11.36, 164.72], [10.45, 165.54],
+                      [9.68, 166.52], [8.89, 167.94], [8.45, 168.86]]).T
+    np.testing.assert_allclose(psi_delta(dyn, 2), third, rtol=1e-3)
+    times = jo.load_spectra(DATA / "Woolam_kineticTest.dat").meta["times"]
+    np.testing.assert_allclose(60 * times[::2][:4], [1.4, 6.4, 11.5, 16.5], rtol=1e-2)
