@@ -73,3 +73,4 @@ def test_photometric_data_have_no_ncs_mse_and_unweighted_data_no_wvase_mse():
     st = jo.fit_statistics(_sample(), sp, fit)
     assert np.isnan(st.mse_ncs) and np.isnan(st.mse) and st.n_ncs == 0
     assert st.ci90[0] == pytest.approx(1.65 * float(fit.stderr[0]))
+    assert "MSE n/a (the data carry no sigma)" in fit.table(statistics=st) and "MSE n/a (no ellipsometric data)" in fit.table(statistics=st)

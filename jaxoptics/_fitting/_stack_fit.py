@@ -140,8 +140,10 @@ class StackFit:
         if statistics is not None:
             mse = float(np.asarray(sl(np.asarray(statistics.mse)[..., None]))[0])
             ncs = float(np.asarray(sl(np.asarray(statistics.mse_ncs)[..., None]))[0])
-            rows.append(f"MSE {mse:.4g} (WVASE: sigma-weighted, {statistics.n_data} data - {statistics.n_params}); "
-                        f"MSE {ncs:.4g} (CompleteEASE: N, C, S x1000, {statistics.n_ncs} data - {statistics.n_params})")
+            wvase = f"{mse:.4g}" if np.isfinite(mse) else "n/a (the data carry no sigma)"
+            ce = f"{ncs:.4g}" if np.isfinite(ncs) else "n/a (no ellipsometric data)"
+            rows.append(f"MSE {wvase} (WVASE: sigma-weighted, {statistics.n_data} data - {statistics.n_params}); "
+                        f"MSE {ce} (CompleteEASE: N, C, S x1000, {statistics.n_ncs} data - {statistics.n_params})")
         return "\n".join(rows)
 
 
