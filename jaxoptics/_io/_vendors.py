@@ -13,10 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ._conventions import Conventions, apply_delta_conventions, finish, mueller_to_ncs
-
-
-def fail(path, line, msg):
-    raise ValueError(f"{path}, line {line}: {msg}")
+from ._reflectance import _fail as fail
 
 
 def read_lines(path: Path) -> list[str]:
