@@ -2,6 +2,7 @@
 tmm-generated spectra with noise, calibrated standard errors, honest reports of what the data do
 not determine, and the spectra files."""
 
+import functools
 import math
 from pathlib import Path
 
@@ -93,14 +94,24 @@ def test_incoherent_layer_against_tmm():
             assert q[j, i] == pytest.approx(ref, abs=1e-12)
 
 
+@functools.lru_cache(maxsize=None)
+def _tmm_psi_delta(d):
+    """tmm's psi/delta of the oxide film of thickness `d` on the grid, computed once per thickness
+    (maps of many noise draws of one film reuse it)."""
+    wl, ang = grid()
+    psi, delta, _, _ = tmm_quantities(cauchy_n(wl, **OXIDE), d, wl, ang)
+    psi.flags.writeable = delta.flags.writeable = False
+    return psi, delta
+
+
 def _spectra(d_true, seed, sigma=(0.02, 0.05)):
     """psi/delta from tmm for films of thicknesses `d_true` (a map), with Gaussian noise."""
-    wl, ang = grid()
     rng = np.random.default_rng(seed)
     vals = []
     for d in np.atleast_1d(d_true):
-        psi, delta, _, _ = tmm_quantities(cauchy_n(wl, **OXIDE), float(d), wl, ang)
+        psi, delta = _tmm_psi_delta(float(d))
         vals.append((psi + sigma[0] * rng.normal(size=psi.shape), delta + sigma[1] * rng.normal(size=psi.shape)))
+    wl, ang = grid()
     V = np.asarray(vals)
     return jo.make_spectra(wl, ang, {"psi_deg": V[:, 0], "delta_deg": V[:, 1]},
                            sigma={"psi_deg": np.full(V[:, 0].shape, sigma[0]), "delta_deg": np.full(V[:, 0].shape, sigma[1])})
