@@ -343,6 +343,8 @@ class Tabulated(_ByContent, Dispersion):
 def _walk(value, path):
     """Yield `(path, leaf)` for the numeric leaves of a parameter field (numbers, `Free`, tuples,
     and the parameters of a model held in it: an effective medium's constituents)."""
+    if value is None:  # an optional field left out (a graded layer's `bottom` or `profile`)
+        return
     if isinstance(value, (tuple, list)):
         for i, v in enumerate(value):
             yield from _walk(v, path + (i,))

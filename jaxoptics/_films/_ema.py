@@ -40,7 +40,7 @@ def _as_material(m, what):
     if isinstance(m, Dispersion):
         return m
     if isinstance(m, bool) or not isinstance(m, (int, float, complex, Free)):
-        raise ValueError(f"EMA {what}: a Dispersion model or a number, got {m!r}")
+        raise ValueError(f"{what}: a Dispersion model or a number, got {m!r}")
     if isinstance(m, Free):
         return Constant(n=m, k=0.0)
     m = complex(m)
@@ -74,8 +74,8 @@ class EMA(Dispersion):
     _params = ("host", "inclusion", "fraction")
 
     def __post_init__(self):
-        object.__setattr__(self, "host", _as_material(self.host, "host"))
-        object.__setattr__(self, "inclusion", _as_material(self.inclusion, "inclusion"))
+        object.__setattr__(self, "host", _as_material(self.host, "EMA host"))
+        object.__setattr__(self, "inclusion", _as_material(self.inclusion, "EMA inclusion"))
         if self.method not in METHODS:
             raise ValueError(f"EMA method={self.method!r}: one of {METHODS}")
         if not 0 < float(self.depolarization) < 1:

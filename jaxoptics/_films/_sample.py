@@ -55,6 +55,20 @@ class Layer:
                 object.__setattr__(self, "thickness_nm", Free(t.value, 0.0, t.upper))
         elif isinstance(t, bool) or not isinstance(t, (int, float, np.number)) or not t >= 0 or not math.isfinite(t):
             raise ValueError(f"layer {self.name or ''}: thickness_nm must be a finite number >= 0 or Free, got {t!r}")
+        if self.incoherent and _slices(self.material) > 1:
+            raise ValueError(f"layer {self.name or ''}: a graded layer (its slices are thin films) cannot be incoherent")
+
+
+def _slices(material) -> int:
+    """The media a layer of this material is in the stack: `slices` for a graded one, else 1."""
+    return getattr(material, "slices", 1) if hasattr(material, "nk_slices") else 1
+
+
+def _expanded(layers, incoherent):
+    """The positions among the stack's inner layers of the layers `incoherent` (indices into
+    `layers`), graded layers counting as their slices."""
+    starts = np.cumsum([0] + [_slices(layer.material) for layer in layers])
+    return tuple(int(starts[i]) for i in incoherent)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,7 +161,14 @@ class Sample:
 
     @property
     def incoherent(self) -> tuple:
-        return tuple(i for i, layer in enumerate(self.layers) if layer.incoherent)
+        """The incoherent layers' positions among the stack's inner layers (a graded layer is
+        its slices there)."""
+        return _expanded(self.layers, [i for i, layer in enumerate(self.layers) if layer.incoherent])
+
+    def _columns(self) -> list[int]:
+        """Per slot (ambient, layers, substrate): its first column among the stack's media."""
+        sizes = [1] + [_slices(layer.material) for layer in self.layers] + [1]
+        return [int(c) for c in np.cumsum([0] + sizes[:-1])]
 
 
 def _info(name, leaf, is_t):
@@ -176,22 +197,33 @@ class _ResolvedSample:
     def indices(self, wavelength_nm):
         """`(..., L)` complex indices of all media at `wavelength_nm`."""
         lam_um = wavelength_nm / 1000
-        Ns = [self.ambient.nk(lam_um)] + [layer.material.nk(lam_um) for layer in self.layers] + [self.substrate.nk(lam_um)]
+        shape = jnp.shape(lam_um)
+        Ns = [self.ambient.nk(lam_um)]
+        for layer in self.layers:  # a graded layer is its slices
+            m = layer.material
+            Ns.append(m.nk_slices(lam_um) if _slices(m) > 1 else jnp.asarray(m.nk(lam_um))[..., None])
+        Ns.append(self.substrate.nk(lam_um))
+        Ns[0], Ns[-1] = jnp.asarray(Ns[0])[..., None], jnp.asarray(Ns[-1])[..., None]
         cdt = jnp.result_type(*Ns)
-        Ns = [jnp.broadcast_to(N.astype(cdt), jnp.shape(lam_um)) for N in Ns]
-        return jnp.stack(Ns, axis=-1)
+        Ns = [jnp.broadcast_to(N.astype(cdt), shape + N.shape[-1:]) for N in Ns]
+        return jnp.concatenate(Ns, axis=-1)
 
     def stack_inputs(self, wavelength_nm):
         """`(n, d)` for `stack`: `(..., L)` indices (the ambient's real part) and `(L-2,)` thicknesses."""
         wl = jnp.asarray(wavelength_nm)
         n = self.indices(wl)
         n = n.at[..., 0].set(jnp.real(n[..., 0]).astype(n.dtype))
-        d = jnp.stack([jnp.asarray(layer.thickness_nm, wl.dtype) for layer in self.layers]) if self.layers else jnp.zeros((0,), wl.dtype)
+        parts = []
+        for layer in self.layers:  # a graded layer's slices share its thickness equally
+            k = _slices(layer.material)
+            t = jnp.asarray(layer.thickness_nm, wl.dtype)
+            parts.append(jnp.broadcast_to(t / k if k > 1 else t, (k,)))
+        d = jnp.concatenate(parts) if parts else jnp.zeros((0,), wl.dtype)
         return n, d
 
     @property
     def incoherent(self) -> tuple:
-        return tuple(i for i, layer in enumerate(self.layers) if layer.incoherent)
+        return _expanded(self.layers, [i for i, layer in enumerate(self.layers) if layer.incoherent])
 
     def stack(self, wavelength_nm, angle_rad):
         wl = jnp.asarray(wavelength_nm)

@@ -59,7 +59,7 @@ def _model_and_jacobian(sample, kinds, wl, ang):
 class _Plan(NamedTuple):
     directions: tuple  # tangents through the stack: ("param", i), ("re", j) or ("im", j)
     columns: tuple  # per free parameter: (direction,) or (re direction, im direction or None)
-    medium: tuple  # per free parameter: the medium it belongs to (None for a thickness)
+    medium: tuple  # per free parameter: the column of the medium it belongs to among the stack's media (None for a thickness)
 
 
 def _jacobian_plan(sample):
@@ -75,16 +75,21 @@ def _jacobian_plan(sample):
     point-by-point combination with the dispersion formula's derivatives. Every other parameter
     (a thickness, or a medium with one or two) is its own tangent. On the benchmark's film (Cauchy
     A, B, C and the thickness free) that is 2 tangents instead of 4."""
-    medium, counts, real = [], [], []
+    medium, counts, real, graded = [], [], [], []
+    columns_of = sample._columns()
     for j, (_, model) in enumerate(sample._slots()):
         k = sum(isinstance(leaf, Free) for _, leaf in parameter_leaves(model))
-        medium += [j] * k
+        medium += [columns_of[j]] * k
         counts.append(k)
         real.append(j == 0 or model._real())
+        graded.append(hasattr(model, "nk_slices"))  # its parameters move several media: each its own tangent
+    counts = dict(zip(columns_of, counts))
+    real = dict(zip(columns_of, real))
+    graded = dict(zip(columns_of, graded))
     medium += [None] * sum(isinstance(layer.thickness_nm, Free) for layer in sample.layers)
     directions, columns, split = [], [], {}
     for i, j in enumerate(medium):
-        if j is not None and counts[j] > 2:
+        if j is not None and counts[j] > 2 and not graded[j]:
             if j not in split:
                 split[j] = (len(directions), None if real[j] else len(directions) + 1)
                 directions += [("re", j)] + ([] if real[j] else [("im", j)])

@@ -26,6 +26,10 @@ A number is a fixed parameter; a table `{ value = ..., min = ..., max = ... }` i
   = 0.333 }`: an effective medium (`EMA`; `ema` also `"maxwell-garnett"`, `"looyenga"`,
   `"linear"`); a surface roughness layer is one of the film below with `inclusion = 1.0` (void)
   and `fraction = 0.5`;
+- `{ top = <material>, bottom = <material>, exponent = 1.0, slices = 20 }`: a graded layer whose
+  index goes from the top material's to the bottom's (`Graded`; `profile = [w0, ..., wm]` instead
+  of `exponent` gives the weights at equally spaced depths), or `{ top = <effective medium>,
+  fraction_bottom = ... }`, whose composition does;
 - `{ model = "cauchy", A, B, C, k_amp, k_exp, E_band }`, `{ model = "sellmeier", B = [..], C = [..],
   eps_inf }`, `{ model = "tauc-lorentz", A, E0, C, Eg, eps_inf }`,
   `{ model = "drude-lorentz", eps_inf, drude = [[wp, gamma], ...], lorentz = [[f, E0, gamma], ...] }`:
@@ -106,6 +110,25 @@ def _material(v, where, base: Path):
         try:
             return EMA(_material(v["host"], f"{where}.host", base), _material(v["inclusion"], f"{where}.inclusion", base),
                        _param(v["fraction"], f"{where}.fraction"), v["ema"], float(v.get("depolarization", 1 / 3)))
+        except ValueError as e:
+            raise _Err(f"{where}: {e}") from None
+    if "top" in v:
+        from .._films._graded import Graded
+
+        known = {"top", "bottom", "fraction_bottom", "exponent", "profile", "slices"}
+        extra = set(v) - known
+        if extra or ("bottom" in v) == ("fraction_bottom" in v):
+            raise _Err(f"{where}: a graded layer's material is {{ top = <material>, bottom = <material> [, exponent, profile, slices] }} "
+                       f"or {{ top = <effective medium>, fraction_bottom = ... [, exponent, profile, slices] }}; got keys {sorted(v)}")
+        try:
+            slices = v.get("slices", 20)
+            if isinstance(slices, bool) or not isinstance(slices, int):
+                raise ValueError(f"slices = {slices!r}: a whole number >= 1")
+            return Graded(_material(v["top"], f"{where}.top", base),
+                          _material(v["bottom"], f"{where}.bottom", base) if "bottom" in v else None,
+                          _param(v["fraction_bottom"], f"{where}.fraction_bottom") if "fraction_bottom" in v else None,
+                          _param(v.get("exponent", 1.0), f"{where}.exponent"),
+                          _param(v["profile"], f"{where}.profile") if "profile" in v else None, slices)
         except ValueError as e:
             raise _Err(f"{where}: {e}") from None
     if "model" not in v:
