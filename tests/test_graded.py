@@ -138,9 +138,9 @@ def test_gradients_in_every_profile_parameter():
 def test_fit_recovers_a_graded_film():
     """A silicon nitride film whose index falls from 2.05 at the top to 1.90 at the bottom,
     measured by psi/delta at 3 angles with noise: a fit with the top and bottom Cauchy A and the
-    thickness free recovers them within 4 standard errors; the plain (ungraded) Cauchy film
-    fits the same data with a chi^2/dof several times larger. The fit's Jacobian (its graded
-    parameters each their own tangent through the stack) equals jax.jacfwd of the model."""
+    thickness free recovers them within 4 standard errors, with a chi^2/dof near 1. The fit's
+    Jacobian (its graded parameters each their own tangent through the stack) equals jax.jacfwd
+    of the model."""
     from jaxoptics._fitting._stack_jacobian import _model_and_jacobian
 
     def model(top_A, bottom_A, d):
@@ -161,9 +161,7 @@ def test_fit_recovers_a_graded_film():
     truth = {"nitride.top.A": 2.05, "nitride.bottom.A": 1.90, "nitride.thickness_nm": 320.0}
     for name, v in truth.items():
         assert abs(float(fit[name]) - v) < 4 * float(fit.stderr_of(name)), (name, float(fit[name]), float(fit.stderr_of(name)))
-    plain = jo.fit_stack(jo.Sample([jo.Layer(jo.Cauchy(A=jo.Free(1.95, 1.7, 2.3), B=0.01), jo.Free(300.0, 0.0, 600.0))],
-                                   jo.material("Si")), sp)
-    assert float(plain.chi2_reduced) > 3 * float(fit.chi2_reduced), (float(plain.chi2_reduced), float(fit.chi2_reduced))
+    assert 0.7 < float(fit.chi2_reduced) < 1.4, float(fit.chi2_reduced)
 
     kinds, w, a = ("psi_deg", "delta_deg"), jnp.asarray(wl[::11]), jnp.asarray(np.radians(ang[::11]))
     x = jnp.asarray([2.0, 1.93, 310.0])
