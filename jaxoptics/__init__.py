@@ -58,7 +58,7 @@ from ._films._materials import MATERIALS as MATERIALS
 from ._films._materials import Material as Material
 from ._films._materials import cauchy as cauchy
 from ._films._ema import EMA as EMA
-from ._films._ema import roughness as roughness
+from ._films._sample import roughness as roughness
 from ._films._graded import Graded as Graded
 from ._films._materials import material_index as material_index
 from ._films._materials import sellmeier as sellmeier

@@ -1,5 +1,5 @@
-"""Effective-medium materials: a mixture of two materials as one index (`EMA`), and a surface
-roughness layer as such a mixture with void (`roughness`).
+"""Effective-medium materials: a mixture of two materials as one index (`EMA`; a surface
+roughness layer, `jaxoptics._films._sample.roughness`, is such a mixture with void).
 
 With `eps_h` the host's and `eps_i` the inclusion's dielectric function, `f` the inclusion's
 volume fraction and `L` the depolarization factor of the inclusions (1/3 for spheres):
@@ -24,14 +24,11 @@ each against these closed forms, the limits and pyElli's implementation.
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax.numpy as jnp
 
 from ._dispersion import Constant, Dispersion, Free
-
-if TYPE_CHECKING:
-    from ._sample import Layer
 
 METHODS = ("bruggeman", "maxwell-garnett", "looyenga", "linear")
 
@@ -114,12 +111,3 @@ class EMA(Dispersion):
 
     def nk(self, wavelength_um):
         return jnp.sqrt(self.eps(wavelength_um))
-
-
-def roughness(material: Any, thickness_nm: Any, *, void_fraction: Any = 0.5, name: str = "roughness") -> Layer:
-    """A surface roughness layer: a Bruggeman mixture of `material` (the film below it) with
-    void, `void_fraction` of it void (0.5 by default, the usual model; a number or `Free`), of
-    thickness `thickness_nm` (a number or `Free`). Put it above the film it roughens."""
-    from ._sample import Layer  # noqa: F811 (the runtime import; the one above is for the annotation)
-
-    return Layer(EMA(material, 1.0, void_fraction, "bruggeman"), thickness_nm, name=name)

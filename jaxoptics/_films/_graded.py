@@ -112,9 +112,9 @@ class Graded(Dispersion):
         w = jnp.stack([jnp.asarray(v, z.dtype) for v in self.profile])
         return jnp.interp(z, jnp.linspace(0.0, 1.0, len(self.profile), dtype=z.dtype), w)
 
-    def depths(self, dtype=np.float64):
+    def depths(self):
         """The relative depths of the slices' middles, top first."""
-        return (np.arange(self.slices, dtype=dtype) + 0.5) / self.slices
+        return (np.arange(self.slices) + 0.5) / self.slices
 
     def _at(self, wavelength_um, w):
         """The index at weights `w` (the shape of the wavelengths)."""
@@ -130,21 +130,24 @@ class Graded(Dispersion):
     def nk_slices(self, wavelength_um):
         """`(..., slices)` indices of the sublayers (top first) at wavelengths `(...)`."""
         lam = jnp.asarray(wavelength_um)
-        real_dtype = jnp.real(jnp.zeros((), jnp.result_type(lam, float))).dtype
-        w = self.weights(jnp.asarray(self.depths(np.float64), real_dtype))
+        w = self.weights(jnp.asarray(self.depths(), _real_dtype(lam)))
         shape = lam.shape + (self.slices,)
         return self._at(jnp.broadcast_to(lam[..., None], shape), jnp.broadcast_to(w, shape))
 
     def nk(self, wavelength_um):
         lam = jnp.asarray(wavelength_um)
-        real_dtype = jnp.real(jnp.zeros((), jnp.result_type(lam, float))).dtype
-        return self._at(lam, jnp.broadcast_to(self.weights(jnp.asarray(0.5, real_dtype)), lam.shape))
+        return self._at(lam, jnp.broadcast_to(self.weights(jnp.asarray(0.5, _real_dtype(lam))), lam.shape))
+
+
+def _real_dtype(lam):
+    """The real floating dtype of the wavelengths' computation."""
+    return jnp.real(jnp.zeros((), jnp.result_type(lam, float))).dtype
 
 
 def _traced(v) -> bool:
     """A value the model is given inside a fit or a transformation (a JAX array or tracer): the
     solver keeps it within the bounds, and nothing is checked."""
-    return isinstance(v, jax.Array) or isinstance(v, jax.core.Tracer)
+    return isinstance(v, jax.Array)
 
 
 def _check_fraction(f, what):

@@ -18,6 +18,8 @@ import numpy as np
 from .._core._numerics import materialize_both
 from ._dispersion import Constant, Dispersion, Free, parameter_leaves, substitute
 from ._elementary import _atan2
+from ._ema import EMA
+from ._graded import Graded
 from ._stack import stack
 
 
@@ -55,20 +57,20 @@ class Layer:
                 object.__setattr__(self, "thickness_nm", Free(t.value, 0.0, t.upper))
         elif isinstance(t, bool) or not isinstance(t, (int, float, np.number)) or not t >= 0 or not math.isfinite(t):
             raise ValueError(f"layer {self.name or ''}: thickness_nm must be a finite number >= 0 or Free, got {t!r}")
-        if self.incoherent and _slices(self.material) > 1:
+        if self.incoherent and isinstance(self.material, Graded):
             raise ValueError(f"layer {self.name or ''}: a graded layer (its slices are thin films) cannot be incoherent")
 
 
-def _slices(material) -> int:
-    """The media a layer of this material is in the stack: `slices` for a graded one, else 1."""
-    return getattr(material, "slices", 1) if hasattr(material, "nk_slices") else 1
+def _starts(layers) -> np.ndarray:
+    """Where each layer starts among the stack's inner layers (a graded layer is its slices there),
+    and, last, their number."""
+    return np.cumsum([0] + [layer.material.slices if isinstance(layer.material, Graded) else 1 for layer in layers])
 
 
-def _expanded(layers, incoherent):
-    """The positions among the stack's inner layers of the layers `incoherent` (indices into
-    `layers`), graded layers counting as their slices."""
-    starts = np.cumsum([0] + [_slices(layer.material) for layer in layers])
-    return tuple(int(starts[i]) for i in incoherent)
+def _incoherent(layers) -> tuple:
+    """The incoherent layers' positions among the stack's inner layers."""
+    starts = _starts(layers)
+    return tuple(int(starts[i]) for i, layer in enumerate(layers) if layer.incoherent)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -163,12 +165,11 @@ class Sample:
     def incoherent(self) -> tuple:
         """The incoherent layers' positions among the stack's inner layers (a graded layer is
         its slices there)."""
-        return _expanded(self.layers, [i for i, layer in enumerate(self.layers) if layer.incoherent])
+        return _incoherent(self.layers)
 
     def _columns(self) -> list[int]:
         """Per slot (ambient, layers, substrate): its first column among the stack's media."""
-        sizes = [1] + [_slices(layer.material) for layer in self.layers] + [1]
-        return [int(c) for c in np.cumsum([0] + sizes[:-1])]
+        return [0] + [1 + int(c) for c in _starts(self.layers)]
 
 
 def _info(name, leaf, is_t):
@@ -197,15 +198,12 @@ class _ResolvedSample:
     def indices(self, wavelength_nm):
         """`(..., L)` complex indices of all media at `wavelength_nm`."""
         lam_um = wavelength_nm / 1000
-        shape = jnp.shape(lam_um)
-        Ns = [self.ambient.nk(lam_um)]
-        for layer in self.layers:  # a graded layer is its slices
-            m = layer.material
-            Ns.append(m.nk_slices(lam_um) if _slices(m) > 1 else jnp.asarray(m.nk(lam_um))[..., None])
-        Ns.append(self.substrate.nk(lam_um))
-        Ns[0], Ns[-1] = jnp.asarray(Ns[0])[..., None], jnp.asarray(Ns[-1])[..., None]
+        # `(..., media)` per slot: a graded layer is its slices
+        one = lambda m: jnp.asarray(m.nk(lam_um))[..., None]
+        Ns = [one(self.ambient)] + [m.nk_slices(lam_um) if isinstance(m, Graded) else one(m) for m in (layer.material for layer in self.layers)] \
+            + [one(self.substrate)]
         cdt = jnp.result_type(*Ns)
-        Ns = [jnp.broadcast_to(N.astype(cdt), shape + N.shape[-1:]) for N in Ns]
+        Ns = [jnp.broadcast_to(N.astype(cdt), jnp.shape(lam_um) + N.shape[-1:]) for N in Ns]
         return jnp.concatenate(Ns, axis=-1)
 
     def stack_inputs(self, wavelength_nm):
@@ -213,17 +211,15 @@ class _ResolvedSample:
         wl = jnp.asarray(wavelength_nm)
         n = self.indices(wl)
         n = n.at[..., 0].set(jnp.real(n[..., 0]).astype(n.dtype))
-        parts = []
-        for layer in self.layers:  # a graded layer's slices share its thickness equally
-            k = _slices(layer.material)
-            t = jnp.asarray(layer.thickness_nm, wl.dtype)
-            parts.append(jnp.broadcast_to(t / k if k > 1 else t, (k,)))
+        # a graded layer's slices share its thickness equally (t / 1 is t, exactly)
+        k = np.diff(_starts(self.layers))
+        parts = [jnp.broadcast_to(jnp.asarray(layer.thickness_nm, wl.dtype) / int(kj), (int(kj),)) for layer, kj in zip(self.layers, k)]
         d = jnp.concatenate(parts) if parts else jnp.zeros((0,), wl.dtype)
         return n, d
 
     @property
     def incoherent(self) -> tuple:
-        return _expanded(self.layers, [i for i, layer in enumerate(self.layers) if layer.incoherent])
+        return _incoherent(self.layers)
 
     def stack(self, wavelength_nm, angle_rad):
         wl = jnp.asarray(wavelength_nm)
@@ -282,3 +278,10 @@ def model_quantities(res, kinds, flat_out=False):
     shape = jnp.broadcast_shapes(*(v.shape for v in vals))
     flat = jnp.concatenate([jnp.broadcast_to(v, shape) for v in vals], axis=-1)
     return flat if flat_out else flat.reshape(shape[:-1] + (len(kinds), shape[-1]))
+
+
+def roughness(material: Any, thickness_nm: Any, *, void_fraction: Any = 0.5, name: str = "roughness") -> Layer:
+    """A surface roughness layer: a Bruggeman mixture of `material` (the film below it) with
+    void, `void_fraction` of it void (0.5 by default, the usual model; a number or `Free`), of
+    thickness `thickness_nm` (a number or `Free`). Put it above the film it roughens."""
+    return Layer(EMA(material, 1.0, void_fraction, "bruggeman"), thickness_nm, name=name)

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 
 from .._core._numerics import materialize
 from .._films._dispersion import Free, parameter_leaves
+from .._films._graded import Graded
 from .._films._sample import model_quantities
 from .._films._stack import stack
 
@@ -75,26 +76,24 @@ def _jacobian_plan(sample):
     point-by-point combination with the dispersion formula's derivatives. Every other parameter
     (a thickness, or a medium with one or two) is its own tangent. On the benchmark's film (Cauchy
     A, B, C and the thickness free) that is 2 tangents instead of 4."""
-    medium, counts, real, graded = [], [], [], []
     columns_of = sample._columns()
+    slot, counts, real, graded = [], [], [], []
     for j, (_, model) in enumerate(sample._slots()):
         k = sum(isinstance(leaf, Free) for _, leaf in parameter_leaves(model))
-        medium += [columns_of[j]] * k
+        slot += [j] * k
         counts.append(k)
         real.append(j == 0 or model._real())
-        graded.append(hasattr(model, "nk_slices"))  # its parameters move several media: each its own tangent
-    counts = dict(zip(columns_of, counts))
-    real = dict(zip(columns_of, real))
-    graded = dict(zip(columns_of, graded))
-    medium += [None] * sum(isinstance(layer.thickness_nm, Free) for layer in sample.layers)
+        graded.append(isinstance(model, Graded))  # its parameters move several media: each its own tangent
+    slot += [None] * sum(isinstance(layer.thickness_nm, Free) for layer in sample.layers)
     directions, columns, split = [], [], {}
-    for i, j in enumerate(medium):
+    for i, j in enumerate(slot):
         if j is not None and counts[j] > 2 and not graded[j]:
             if j not in split:
                 split[j] = (len(directions), None if real[j] else len(directions) + 1)
-                directions += [("re", j)] + ([] if real[j] else [("im", j)])
+                directions += [("re", columns_of[j])] + ([] if real[j] else [("im", columns_of[j])])
             columns.append(split[j])
         else:
             columns.append((len(directions),))
             directions.append(("param", i))
-    return _Plan(tuple(directions), tuple(columns), tuple(medium))
+    medium = tuple(None if j is None else columns_of[j] for j in slot)
+    return _Plan(tuple(directions), tuple(columns), medium)

@@ -121,14 +121,11 @@ def _material(v, where, base: Path):
             raise _Err(f"{where}: a graded layer's material is {{ top = <material>, bottom = <material> [, exponent, profile, slices] }} "
                        f"or {{ top = <effective medium>, fraction_bottom = ... [, exponent, profile, slices] }}; got keys {sorted(v)}")
         try:
-            slices = v.get("slices", 20)
-            if isinstance(slices, bool) or not isinstance(slices, int):
-                raise ValueError(f"slices = {slices!r}: a whole number >= 1")
             return Graded(_material(v["top"], f"{where}.top", base),
                           _material(v["bottom"], f"{where}.bottom", base) if "bottom" in v else None,
                           _param(v["fraction_bottom"], f"{where}.fraction_bottom") if "fraction_bottom" in v else None,
                           _param(v.get("exponent", 1.0), f"{where}.exponent"),
-                          _param(v["profile"], f"{where}.profile") if "profile" in v else None, slices)
+                          _param(v["profile"], f"{where}.profile") if "profile" in v else None, v.get("slices", 20))
         except ValueError as e:
             raise _Err(f"{where}: {e}") from None
     if "model" not in v:
