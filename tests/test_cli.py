@@ -84,3 +84,42 @@ def test_command_ends_with_its_output_exit_code_and_exit_handlers(tmp_path):
                          capture_output=True, text=True, timeout=900)
     assert bad.returncode == 2
     assert "missing.csv: no such file" in bad.stderr
+
+
+
+_DEFAULT_EMITTERS = """
+import warnings
+import numpy as np, jax, jax.numpy as jnp, tmm
+jax.config.update("jax_enable_x64", True)
+import jaxoptics as jo
+rng = np.random.default_rng(5)
+K, L = 16, 6
+n = rng.uniform(1.2, 2.6, (K, L)) + 1j * np.where(rng.random((K, L)) < 0.4, rng.uniform(0, 0.4, (K, L)), 0)
+n[:, 0] = 1.0
+d = rng.uniform(5, 400, (K, L - 2)); d[:, 1] = 5e3
+wl, th = rng.uniform(350, 1000, K), rng.uniform(0, 1.5, K)
+for inc, coh in (((), ["i", "c", "c", "c", "c", "i"]), ((1,), ["i", "c", "i", "c", "c", "i"])):
+    res = jax.jit(lambda *a: jo.stack(*a, incoherent=inc))(n, d, wl, np.cos(th))
+    for k in range(K):
+        for pol, R in (("s", res.R_s), ("p", res.R_p)):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                ref = tmm.inc_tmm(pol, list(n[k]), [np.inf, *d[k], np.inf], coh, th[k], wl[k])["R"]
+            assert abs(float(R[k]) - ref) < 1e-10, (inc, k, pol, float(R[k]), ref)
+g = jax.jit(jax.grad(lambda d: jnp.sum(jo.stack(jnp.asarray(n), d, wl, np.cos(th), incoherent=(1,)).R)))(d)
+assert np.all(np.isfinite(np.asarray(g)))
+c = np.linspace(0, 1, 101)
+s, ct = np.sqrt(1 - c**2), np.sqrt(1 - (np.sqrt(1 - c**2) / 1.5) ** 2)
+rs, rp = (c - 1.5 * ct) / (c + 1.5 * ct), (ct - 1.5 * c) / (ct + 1.5 * c)
+assert np.allclose(np.asarray(jo.fresnel(c, 1.0, 1.5)), (rs**2 + rp**2) / 2, rtol=1e-13, atol=1e-15)
+print("DEFAULTS OK")
+"""
+
+
+def test_kernels_under_xla_default_emitters():
+    """The suite compiles with XLA's classic CPU emitters (`conftest.py`); users run XLA's defaults.
+    Here, in a process with the defaults: stacks with and without an incoherent layer against
+    tmm's `inc_tmm` (1e-10), finite gradients, and the Fresnel reflectance against its closed form."""
+    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "xla_cpu_use_fusion_emitters" not in f)
+    out = _run(["-c", _DEFAULT_EMITTERS], XLA_FLAGS=flags)
+    assert "DEFAULTS OK" in out.stdout

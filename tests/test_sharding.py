@@ -114,7 +114,8 @@ SCRIPT = textwrap.dedent('''
     same(many.index(lam)[1], one.index(lam)[1], 1e-6, 0, "fit_dispersion stderr")
 
     # a map of 6 film sites over 2 devices, and 5 of them (padded to 6): the same fit as on one
-    # device (each device compiles its own program: two devices show the path at half the cost)
+    # device (each device compiles its own program: two devices show the path at half the cost;
+    # the single-device answer fits the map's two halves, with the program of a device's block)
     wl_nm = np.linspace(400, 800, 41)
     d_true = np.array([95.0, 102.0, 110.0, 121.0, 133.0, 140.0])
     film = lambda t: jo.Sample([jo.Layer(jo.Cauchy(A=1.46, B=0.0035), t, name="film")], 3.9 + 0.02j)
@@ -124,7 +125,9 @@ SCRIPT = textwrap.dedent('''
     spectra = jo.make_spectra(wl_nm, 70.0, values)
     model = film(jo.Free(100.0, 50.0, 200.0))
     two = jo.batch_mesh(devices=jax.devices()[:2])
-    a, b = jo.fit_stack(model, spectra), jo.fit_stack(model, spectra, mesh=two)
+    halves = [jo.fit_stack(model, spectra._replace(values=spectra.values[h])) for h in (slice(0, 3), slice(3, 6))]
+    a = jax.tree.map(lambda *x: jnp.concatenate(x), *halves)
+    b = jo.fit_stack(model, spectra, mesh=two)
     assert bool(np.all(np.asarray(a.converged))) and bool(np.all(np.asarray(b.converged)))
     for field in ("values", "stderr", "covariance", "chi2_reduced", "converged"):
         sharded(getattr(b, field), "fit_stack " + field)
@@ -141,7 +144,8 @@ SCRIPT = textwrap.dedent('''
 
 
 def test_every_batched_entry_point_on_four_devices():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4".strip()
+    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
     out = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stdout + out.stderr
     assert "SHARDING OK" in out.stdout

@@ -189,7 +189,8 @@ def bench_devices(*, quick=False, progress=None):
 
     rows = []
     for k in (1, 2, 4):
-        env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={k}", JAX_PLATFORMS="cpu")
+        flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={k}".strip()
+        env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")  # the caller's own flags kept
         out = subprocess.run([sys.executable, "-c", _DEVICE_SNIPPET, "1" if quick else "0"], env=env,
                              capture_output=True, text=True, timeout=1200)
         if out.returncode != 0:
