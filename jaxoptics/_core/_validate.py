@@ -126,3 +126,33 @@ def float_dtype(*xs):
 def complex_dtype(float_dt):
     """complex64 for float32 (and narrower), complex128 for float64."""
     return np.dtype(np.complex128) if np.dtype(float_dt).itemsize >= 8 else np.dtype(np.complex64)
+
+
+def local_parts(x) -> list[tuple[tuple[int, ...], np.ndarray]]:
+    """The parts of a concrete array this process can read, each with the index of its first
+    element in the whole array: `[((0, ...), x)]` for NumPy data and for a `jax.Array` whose
+    devices are all this process's; for an array that spans the devices of several processes
+    (`jax.distributed`) and is not replicated on all of them, its addressable shards, one per
+    distinct block. Value checks run on
+    these, so each process checks the data it holds and nothing is gathered across hosts."""
+    if isinstance(x, jax.Array) and not (x.is_fully_addressable or x.is_fully_replicated):
+        parts, seen = [], set()
+        for shard in x.addressable_shards:
+            start = tuple(s.indices(n)[0] for s, n in zip(shard.index, x.shape))
+            if start not in seen:
+                seen.add(start)
+                parts.append((start, np.asarray(shard.data)))
+        return parts
+    a = np.asarray(x)
+    return [((0,) * a.ndim, a)]
+
+
+def first_bad(x, bad, message):
+    """Raise `ValueError(message(index, value))` at the first element of `x` (a concrete array)
+    where `bad(part, start)` is true, looked for in the parts this process holds (`local_parts`);
+    `index` is the element's index in the whole array."""
+    for start, part in local_parts(x):
+        b = np.asarray(bad(part, start))
+        if b.any():
+            local = tuple(int(i) for i in np.argwhere(b)[0])
+            raise ValueError(message([i + s for i, s in zip(local, start)], part[local].item()))

@@ -120,21 +120,19 @@ def _check_concrete(n, d, wavelength, cos_i):
         return not isinstance(x, jax.core.Tracer)
 
     def first_bad(x, bad, what, name):
-        if concrete(x):
-            xs = np.asarray(x)
-            b = np.asarray(bad(xs))
-            if b.any():
-                idx = tuple(int(i) for i in np.argwhere(b)[0])
-                raise ValueError(f"{name}{list(idx)} = {xs[idx].item()!r}: {what}")
+        if concrete(x):  # on the parts this process holds (an array may span several processes)
+            V.first_bad(x, bad, lambda idx, v: f"{name}{idx} = {v!r}: {what}")
 
-    first_bad(d, lambda x: ~(np.isfinite(x) & (x >= 0)), "thicknesses must be finite and >= 0", "d")
-    first_bad(wavelength, lambda x: ~(np.isfinite(x) & (x > 0)), "wavelengths must be finite and > 0", "wavelength")
-    first_bad(cos_i, lambda x: ~(np.isfinite(x) & (np.abs(x) <= 1 + 1e-6)), "cos_i must be finite and within [-1, 1]",
+    first_bad(d, lambda x, _: ~(np.isfinite(x) & (x >= 0)), "thicknesses must be finite and >= 0", "d")
+    first_bad(wavelength, lambda x, _: ~(np.isfinite(x) & (x > 0)), "wavelengths must be finite and > 0", "wavelength")
+    first_bad(cos_i, lambda x, _: ~(np.isfinite(x) & (np.abs(x) <= 1 + 1e-6)), "cos_i must be finite and within [-1, 1]",
               "cos_i")
-    first_bad(n, lambda x: ~(np.isfinite(x) & (np.real(x) > 0)) | V.is_gain(x),
+    first_bad(n, lambda x, _: ~(np.isfinite(x) & (np.real(x) > 0)) | V.is_gain(x),
               f"indices must be finite with real part > 0 and imaginary part k >= 0 (a k below 0 by at most "
               f"{V.K_ROUNDING:g} |n| is rounding, taken as 0)", "n")
-    first_bad(n, lambda x: np.imag(x[..., :1]) != 0, "the incident medium n[..., 0] must be real", "n")
+    # (a part that does not hold the first medium, n sharded along the media, has nothing to check)
+    first_bad(n, lambda x, start: (np.imag(x[..., :1]) != 0) & (start[-1] == 0),
+              "the incident medium n[..., 0] must be real", "n")
 
 
 def _prepare(n, d, wavelength, cos_i, incoherent):

@@ -68,28 +68,35 @@ def check_curves(theta, R, sigma, *, n_params: int, where: str = "") -> None:
     lives; only when a check fails is the offending entry located on the host."""
     at = f" in {where}" if where else ""
     th = _check_theta(theta, np.shape(R), n_params, at)
-    if isinstance(R, jax.Array) and sigma is None:
+    if isinstance(R, jax.Array):
         finite, const = (bool(x) for x in _curve_flags(R))
-        if finite and not const:
-            return  # all good; no copy of a possibly large, sharded array to the host
-    Rv = np.asarray(R, dtype=np.float64)
-    bad = np.argwhere(~np.isfinite(Rv))
-    if bad.size:
-        idx = tuple(int(i) for i in bad[0])
-        raise ValueError(f"R{list(idx)} = {Rv[idx]} is not finite{at}")
-    flat = Rv.reshape(-1, th.shape[0])
-    const_rows = np.flatnonzero(np.ptp(flat, axis=-1) == 0)
-    if const_rows.size:
-        k = tuple(int(i) for i in np.unravel_index(const_rows[0], Rv.shape[:-1])) if Rv.ndim > 1 else ()
-        raise ValueError(
-            f"curve {list(k)}{at} has the same reflectance {flat[const_rows[0], 0]} at every angle: "
-            "a constant curve carries no information on the index"
-        )
+        if finite and not const:  # all good; no copy of a possibly large, sharded array to the host
+            return _check_sigma(sigma, at)
+    _check_R_parts(R, th.shape[0], at)
+    _check_sigma(sigma, at)
+
+
+def _check_sigma(sigma, at):
     if sigma is not None:
-        sv = np.asarray(sigma, dtype=np.float64)
-        if not np.all(np.isfinite(sv) & (sv > 0)):
-            k = tuple(int(i) for i in np.argwhere(~(np.isfinite(sv) & (sv > 0)))[0])
-            raise ValueError(f"sigma{list(k)} = {sv[k]} must be finite and positive{at}")
+        V.first_bad(sigma, lambda s, _: ~(np.isfinite(s) & (s > 0)),
+                    lambda idx, v: f"sigma{idx} = {v} must be finite and positive{at}")
+
+
+def _check_R_parts(R, m, at):
+    """Locate a non-finite value or a constant curve of `R` in the parts this process holds."""
+    V.first_bad(R, lambda r, _: ~np.isfinite(r), lambda idx, v: f"R{idx} = {v} is not finite{at}")
+    for start, part in V.local_parts(R):
+        flat = np.asarray(part, np.float64).reshape(-1, part.shape[-1])
+        const_rows = np.flatnonzero(np.ptp(flat, axis=-1) == 0) if part.shape[-1] == m else np.array([], int)
+        if const_rows.size:
+            k = [int(i) + s for i, s in zip(np.unravel_index(const_rows[0], part.shape[:-1]), start)] if part.ndim > 1 else []
+            raise ValueError(
+                f"curve {k}{at} has the same reflectance {flat[const_rows[0], 0]} at every angle: "
+                "a constant curve carries no information on the index"
+            )
+    if isinstance(R, jax.Array):  # the flags saw a bad value in a part another process holds
+        raise ValueError(f"R holds a value that is not finite or a curve that is constant{at}, in a part another "
+                         "process holds")
 
 
 def _prepared(xp, x, name: str) -> jax.Array | np.ndarray:

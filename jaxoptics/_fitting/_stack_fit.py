@@ -229,7 +229,10 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool | str = Tr
       result is sharded along the sites. A map whose number of sites is not a multiple of the
       device count is padded with copies of its last site for the fit, and the padding is
       dropped from the result (which then comes back unsharded, as JAX cannot shard an uneven
-      length). Default: one device.
+      length). On a mesh that spans several processes (`jax.distributed`), each process passes
+      the spectra of its own sites (a one-dimensional map, the same number of sites per device in
+      every process) and fits them on its own devices; the result is one array over the sites of
+      all processes, its rows the devices' blocks in the mesh's order. Default: one device.
 
     The fit runs in float64 when `jax_enable_x64` is on (recommended: the phase of a micrometre
     film is a few hundred radians), float32 otherwise.
@@ -265,10 +268,18 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool | str = Tr
     else:
         S = np.broadcast_to(np.asarray([DEFAULT_SIGMA[k] for k in kinds], dtype)[:, None], (B, Q, P))
     devices = _mesh_devices(mesh)
-    Bp = -(-B // len(devices)) * len(devices)  # sites padded to a multiple of the device count
-    Bs = Bp // len(devices)  # the sites of one device's block
-    pad = lambda a: np.concatenate([a, np.broadcast_to(a[-1:], (Bp - B,) + a.shape[1:])]) if Bp > B else a
-    V, S = pad(V), pad(S)
+    # the positions in the mesh of this process's devices (all of them but on a mesh that spans
+    # several processes, `jax.distributed`: there each process fits its own sites on its own devices)
+    local = [k for k, d in enumerate(devices) if d is None or d.process_index == jax.process_index()]
+    multi = len(local) < len(devices)
+    if multi:
+        Bs = _sites_per_device(B, len(local), batch)
+        Bp = Bs * len(devices)
+    else:
+        Bp = -(-B // len(devices)) * len(devices)  # sites padded to a multiple of the device count
+        Bs = Bp // len(devices)  # the sites of one device's block
+        pad = lambda a: np.concatenate([a, np.broadcast_to(a[-1:], (Bp - B,) + a.shape[1:])]) if Bp > B else a
+        V, S = pad(V), pad(S)
     # the fit of one block of sites (the whole map without a mesh), the same on every device
     if global_start == "fft":
         from ._reflectometry import fft_window
@@ -310,16 +321,35 @@ def fit_stack(sample: Sample, spectra: Spectra, *, global_start: bool | str = Tr
     # when needed: on the bundled example it is not, and a first call compiles about a third less.
     # On a mesh, every device's calls are dispatched before any result is read, so the devices
     # fit at once.
-    blocks = [(_put(V[k * Bs:(k + 1) * Bs], d), _put(S[k * Bs:(k + 1) * Bs], d)) for k, d in enumerate(devices)]
+    blocks = [(_put(V[j * Bs:(j + 1) * Bs], devices[k]), _put(S[j * Bs:(j + 1) * Bs], devices[k]))
+              for j, k in enumerate(local)]
     states = [call(_stages.first_stage, blk) for blk in blocks]
     outs = [call(_stages.errors_stage if bool(np.all(np.asarray(st[3]))) else _stages.second_stage, blk + (st,))
             for blk, st in zip(blocks, states)]
     out = outs[0] if mesh is None else jax.tree.map(
-        lambda *a: from_blocks({k * Bs: x for k, x in enumerate(a)}, Bp, mesh, mesh.axis_names[0]), *outs)
+        lambda *a: from_blocks({k * Bs: x for k, x in zip(local, a)}, Bp, mesh, mesh.axis_names[0]), *outs)
     x, sd, cov, corr, chi2r, conv, at_b, steps = out
-    shp = lambda a: (a if Bp == B else a[:B]).reshape(batch + a.shape[1:])
+    if multi:  # the sites of every process: one global array along the mesh
+        batch = (Bp,)
+    shp = lambda a: (a if Bp == B or multi else a[:B]).reshape(batch + a.shape[1:])
     return StackFit(tuple(f.name for f in free), shp(x), shp(sd), shp(cov), shp(corr), shp(chi2r), shp(conv),
                     shp(at_b), shp(steps), sigma_given)
+
+
+def _sites_per_device(B: int, n_local: int, batch: tuple) -> int:
+    """The sites of each device's block on a mesh that spans several processes: this process's `B`
+    sites (a one-dimensional map) over its `n_local` devices, the same count in every process
+    (checked across the processes: the result is one array over all their sites)."""
+    from jax.experimental import multihost_utils
+
+    if len(batch) != 1 or B % n_local:
+        raise ValueError(f"on a mesh that spans several processes, each process fits a one-dimensional map of its own "
+                         f"sites, a multiple of its {n_local} devices; this process has spectra of batch shape {batch}")
+    counts = np.asarray(multihost_utils.process_allgather(np.array([B // n_local])))
+    if np.any(counts != counts.ravel()[0]):
+        raise ValueError(f"on a mesh that spans several processes every device fits as many sites; the processes' "
+                         f"sites per device are {counts.ravel().tolist()}")
+    return B // n_local
 
 
 def _mesh_devices(mesh) -> list:

@@ -300,9 +300,10 @@ def scene_interface(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batc
         for name, arr, bad, what in (("film_d", film_d, lambda v: ~(np.isfinite(v) & (v >= 0)), "finite and >= 0"),
                                    ("film_eta", film_eta, lambda v: ~((np.real(v) > 0) & (np.imag(v) >= 0)),
                                     "real part > 0 and k >= 0")):
-            if not isinstance(arr, jax.core.Tracer) and np.any(bad(np.asarray(arr))):
-                bad_at = tuple(int(j) for j in np.argwhere(np.atleast_1d(bad(np.asarray(arr))))[0])
-                raise ValueError(f"{name}{list(bad_at)} = {np.atleast_1d(np.asarray(arr))[bad_at].item()!r}: must be {what}")
+            assert arr is not None  # (coated kinds have both: checked above)
+            if not isinstance(arr, jax.core.Tracer):  # on the parts this process holds
+                V.first_bad(np.atleast_1d(arr) if np.ndim(arr) == 0 else arr, lambda v, _: bad(v),
+                            lambda idx, v: f"{name}{idx} = {v!r}: must be {what}")
     kind_arr = jnp.asarray(kind)
     if not jnp.issubdtype(kind_arr.dtype, jnp.integer):
         raise ValueError(f"kind must be an integer array (an index into scene.kinds), got dtype {kind_arr.dtype}")
