@@ -47,6 +47,12 @@ from ._films._dispersion import Lorentz as Lorentz
 from ._films._dispersion import Sellmeier as Sellmeier
 from ._films._dispersion import Tabulated as Tabulated
 from ._films._dispersion import TaucLorentz as TaucLorentz
+from ._films._oscillators import BSpline as BSpline
+from ._films._oscillators import CodyLorentz as CodyLorentz
+from ._films._oscillators import GenOsc as GenOsc
+from ._films._oscillators import Gaussian as Gaussian
+from ._films._oscillators import Poles as Poles
+from ._films._oscillators import SellmeierIR as SellmeierIR
 from ._films._rii import RIIFormula as RIIFormula
 from ._films._rii import builtin_materials as builtin_materials
 from ._films._rii import load_rii_yaml as load_rii_yaml

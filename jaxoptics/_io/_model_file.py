@@ -32,7 +32,11 @@ A number is a fixed parameter; a table `{ value = ..., min = ..., max = ... }` i
   fraction_bottom = ... }`, whose composition does;
 - `{ model = "cauchy", A, B, C, k_amp, k_exp, E_band }`, `{ model = "sellmeier", B = [..], C = [..],
   eps_inf }`, `{ model = "tauc-lorentz", A, E0, C, Eg, eps_inf }`,
-  `{ model = "drude-lorentz", eps_inf, drude = [[wp, gamma], ...], lorentz = [[f, E0, gamma], ...] }`:
+  `{ model = "drude-lorentz", eps_inf, drude = [[wp, gamma], ...], lorentz = [[f, E0, gamma], ...] }`,
+  `{ model = "gaussian", A, E0, Br, eps_inf }`, `{ model = "cody-lorentz", A, E0, C, Eg, Ep, Et, Eu,
+  eps_inf }`, `{ model = "poles", uv_amp, uv_energy, ir_amp, eps_inf }`, `{ model = "sellmeier-ir",
+  eps_inf, A, En, P }`, `{ model = "b-spline", coefficients = [..], start, spacing, eps_inf }`,
+  `{ model = "genosc", eps_inf, oscillators = [{ model = "gaussian", ... }, ...] }`:
   the dispersion models of `jaxoptics` (wavelengths in micrometres, energies in eV), any
   parameter fixed or free.
 """
@@ -44,10 +48,14 @@ import tomllib
 from pathlib import Path
 
 from .._films._dispersion import Cauchy, Constant, Dispersion, DrudeLorentz, Free, Sellmeier, TaucLorentz
+from .._films._oscillators import OSCILLATORS, BSpline, CodyLorentz, Gaussian, GenOsc, Poles, SellmeierIR
 from .._films._rii import load_rii_yaml, material, rii_material
 from .._films._sample import Layer, Sample
 
-_MODELS: dict[str, type[Dispersion]] = {"cauchy": Cauchy, "sellmeier": Sellmeier, "tauc-lorentz": TaucLorentz, "drude-lorentz": DrudeLorentz}
+_MODELS: dict[str, type[Dispersion]] = {
+    "cauchy": Cauchy, "sellmeier": Sellmeier, "tauc-lorentz": TaucLorentz, "drude-lorentz": DrudeLorentz,
+    "gaussian": Gaussian, "cody-lorentz": CodyLorentz, "poles": Poles, "sellmeier-ir": SellmeierIR, "b-spline": BSpline,
+    "genosc": GenOsc}
 
 
 class _Err(ValueError):
@@ -142,11 +150,26 @@ def _material(v, where, base: Path):
             continue
         if key not in cls._params:
             raise _Err(f"{where}: {name} has no parameter {key!r}; its parameters: {', '.join(cls._params)}")
+        if cls is GenOsc and key == "oscillators":
+            if not isinstance(val, list):
+                raise _Err(f"{where}.oscillators: a list of oscillators {{ model = ..., ... }}")
+            kwargs[key] = tuple(_oscillator(o, f"{where}.oscillators[{j}]", base) for j, o in enumerate(val))
+            continue
         kwargs[key] = _param(val, f"{where}.{key}")
     try:
         return cls(**kwargs)
     except (TypeError, ValueError) as e:
         raise _Err(f"{where}: {e}") from None
+
+
+def _oscillator(v, where, base: Path):
+    """One term of a GenOsc: a model table whose model is an oscillator."""
+    if not isinstance(v, dict) or "model" not in v:
+        raise _Err(f"{where}: an oscillator is {{ model = ..., ... }}")
+    m = _material(v, where, base)
+    if not isinstance(m, OSCILLATORS + (TaucLorentz, DrudeLorentz)):
+        raise _Err(f"{where}: {v['model']!r} is not an oscillator (gaussian, tauc-lorentz, cody-lorentz, drude-lorentz, poles, b-spline)")
+    return m
 
 
 def read_toml(path: Path) -> dict:
