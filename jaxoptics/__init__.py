@@ -47,6 +47,7 @@ from ._films._dispersion import Lorentz as Lorentz
 from ._films._dispersion import Sellmeier as Sellmeier
 from ._films._dispersion import Tabulated as Tabulated
 from ._films._dispersion import TaucLorentz as TaucLorentz
+from ._films._instrument import Instrument as Instrument
 from ._films._oscillators import BSpline as BSpline
 from ._films._oscillators import CodyLorentz as CodyLorentz
 from ._films._oscillators import GenOsc as GenOsc

@@ -48,8 +48,8 @@ class Gaussian(Dispersion):
     Parameters: `A` (amplitude, the peak `eps2`), `E0` (centre, eV), `Br` (full width at half
     maximum, eV), `eps_inf`.
 
-    Reference: D. De Sousa Meneses et al., J. Non-Cryst. Solids 351, 124 (2005); Woollam
-    CompleteEASE manual (GenOsc, `Gaussian`).
+    References: H. Fujiwara and R. W. Collins (eds.), *Spectroscopic Ellipsometry for
+    Photovoltaics*, vol. 1 (Springer, 2018), p. 137; the `Gaussian` oscillator of Woollam's GenOsc.
     """
 
     A: Any = 1.0

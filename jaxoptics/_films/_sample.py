@@ -20,6 +20,7 @@ from ._dispersion import Constant, Dispersion, Free, parameter_leaves, substitut
 from ._elementary import _atan2
 from ._ema import EMA
 from ._graded import Graded
+from ._instrument import Instrument
 from ._stack import stack
 
 
@@ -88,18 +89,23 @@ class ParameterInfo:
 @dataclasses.dataclass(frozen=True)
 class Sample:
     """A layered sample: light comes from `ambient` (real index, default air = 1), crosses
-    `layers` in order (top first), and leaves into `substrate`.
+    `layers` in order (top first), and leaves into `substrate`; `instrument` (an `Instrument`, or
+    None for an ideal measurement) adds the measurement's non-idealities (angle offset, bandwidth,
+    thickness non-uniformity, back-side reflections, ...).
 
     `parameters()` lists every parameter (fixed and free) in a stable order, named like
-    `oxide.thickness_nm`, `oxide.A`, `substrate.n`; `free_names()` the free ones, which a fit
-    returns in that order.
+    `oxide.thickness_nm`, `oxide.A`, `substrate.n`, `instrument.angle_offset_deg`; `free_names()`
+    the free ones, which a fit returns in that order.
     """
 
     layers: tuple
     substrate: Any
     ambient: Any = 1.0
+    instrument: Any = None
 
     def __post_init__(self):
+        if self.instrument is not None and not isinstance(self.instrument, Instrument):
+            raise ValueError(f"instrument must be an Instrument, got {type(self.instrument).__name__}")
         layers = tuple(self.layers)
         names = []
         for i, layer in enumerate(layers):
@@ -132,6 +138,9 @@ class Sample:
                 out.append(_info(f"{owner}.{pname}", leaf, False))
         for nm, layer in zip(self.layer_names, self.layers):
             out.append(_info(f"{nm}.thickness_nm", layer.thickness_nm, True))
+        if self.instrument is not None:
+            for pname in Instrument._params:
+                out.append(_info(f"instrument.{pname}", getattr(self.instrument, pname), False))
         return out
 
     def free(self) -> list[ParameterInfo]:
@@ -155,7 +164,11 @@ class Sample:
             layers.append(_Resolved(model, t if not isinstance(t, Free) else None, layer.incoherent))
         thick = [next(it) if isinstance(layer.thickness_nm, Free) else None for layer in self.layers]
         layers = [lr._replace_t(t) for lr, t in zip(layers, thick)]
-        return _ResolvedSample(new_models[0], tuple(layers), new_models[-1])
+        instrument = self.instrument
+        if instrument is not None:
+            instrument = dataclasses.replace(instrument, **{
+                f: next(it) for f in Instrument._params if isinstance(getattr(instrument, f), Free)})
+        return _ResolvedSample(new_models[0], tuple(layers), new_models[-1], instrument)
 
     def fixed(self) -> _ResolvedSample:
         """This sample with every free parameter at its start value."""
@@ -194,6 +207,7 @@ class _ResolvedSample:
     ambient: Dispersion
     layers: tuple
     substrate: Dispersion
+    instrument: Instrument | None = None
 
     def indices(self, wavelength_nm):
         """`(..., L)` complex indices of all media at `wavelength_nm`."""
@@ -229,7 +243,10 @@ class _ResolvedSample:
     def quantities(self, kinds, wavelength_nm, angle_rad, *, flat=False):
         """The measured quantities `kinds` (names from `jaxoptics.KINDS`) at each point, stacked
         along a new second-to-last axis: `(..., Q, P)` for points of shape `(..., P)` (with
-        `flat=True`, `(..., Q * P)`, quantity after quantity)."""
+        `flat=True`, `(..., Q * P)`, quantity after quantity). With an `Instrument`, its effects
+        are applied (intensities averaged over its conditions)."""
+        if self.instrument is not None:
+            return model_quantities(self.instrument.averaged(self, wavelength_nm, angle_rad), kinds, flat)
         return model_quantities(self.stack(wavelength_nm, angle_rad), kinds, flat)
 
 

@@ -18,7 +18,18 @@ from .._films._stack import stack
 def _model_and_jacobian(sample, kinds, wl, ang):
     """`x -> (model, J)`: the quantities `kinds` at the points `(wl, ang)` (nm, radians), flat
     `(Q P,)`, and their Jacobian `(Q P, p)` in the free parameters `x`, by the chain rule through the
-    stack's inputs (`_jacobian_plan`)."""
+    stack's inputs (`_jacobian_plan`). With an `Instrument`, whose conditions the model averages
+    over, the Jacobian is the forward-mode derivative of the whole model, one tangent per
+    parameter."""
+    if sample.instrument is not None:
+        q = len(sample.free())
+        model = lambda x: sample.with_values([x[i] for i in range(q)]).quantities(kinds, wl, ang, flat=True)
+
+        def model_and_jac_averaged(x):
+            basis = jnp.eye(q, dtype=x.dtype)
+            return jax.vmap(lambda t: jax.jvp(model, (x,), (t,)), out_axes=(None, 1))(basis)
+
+        return model_and_jac_averaged
     plan = _jacobian_plan(sample)
     p, Q = len(plan.columns), len(kinds)
     inc = sample.incoherent

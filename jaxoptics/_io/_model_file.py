@@ -11,6 +11,10 @@ incoherent = false                # optional (thick layers: intensities add)
 
 [substrate]
 material = "Si"                   # a built-in material
+
+[instrument]                      # optional: the measurement's non-idealities (`Instrument`)
+angle_offset_deg = { value = 0, min = -3, max = 3 }
+bandwidth_nm = 2.0
 ```
 
 A number is a fixed parameter; a table `{ value = ..., min = ..., max = ... }` is a free one
@@ -48,6 +52,7 @@ import tomllib
 from pathlib import Path
 
 from .._films._dispersion import Cauchy, Constant, Dispersion, DrudeLorentz, Free, Sellmeier, TaucLorentz
+from .._films._instrument import Instrument
 from .._films._oscillators import OSCILLATORS, BSpline, CodyLorentz, Gaussian, GenOsc, Poles, SellmeierIR
 from .._films._rii import load_rii_yaml, material, rii_material
 from .._films._sample import Layer, Sample
@@ -172,6 +177,21 @@ def _oscillator(v, where, base: Path):
     return m
 
 
+def _instrument(v):
+    """The `[instrument]` table: `Instrument`'s fields, numbers or free parameters."""
+    if not isinstance(v, dict):
+        raise _Err("instrument: use an [instrument] table")
+    known = Instrument._params + ("substrate_mm", "nodes")
+    extra = set(v) - set(known)
+    if extra:
+        raise _Err(f"instrument: unknown keys {sorted(extra)} (known: {', '.join(known)})")
+    kw = {k: (_param(x, f"instrument.{k}") if k in Instrument._params else x) for k, x in v.items()}
+    try:
+        return Instrument(**kw)
+    except (TypeError, ValueError) as e:
+        raise _Err(f"instrument: {e}") from None
+
+
 def read_toml(path: Path) -> dict:
     """A TOML file's table, with an error naming the file (and the line and column of a syntax
     error)."""
@@ -190,9 +210,9 @@ def load_sample(path: str | Path) -> Sample:
     path = Path(path)
     doc = read_toml(path)
     try:
-        unknown = set(doc) - {"ambient", "layer", "substrate", "title"}
+        unknown = set(doc) - {"ambient", "layer", "substrate", "title", "instrument"}
         if unknown:
-            raise _Err(f"unknown top-level keys {sorted(unknown)} (known: ambient, layer, substrate, title)")
+            raise _Err(f"unknown top-level keys {sorted(unknown)} (known: ambient, layer, substrate, instrument, title)")
         layers = []
         for i, lay in enumerate(doc.get("layer", [])):
             where = f"layer[{i}]"
@@ -216,7 +236,8 @@ def load_sample(path: str | Path) -> Sample:
         if not isinstance(sub, dict) or "material" not in sub:
             raise _Err("[substrate] with a `material` is missing")
         ambient = doc.get("ambient", 1.0)
-        return Sample(tuple(layers), _material(sub["material"], "substrate.material", path.parent), ambient)
+        return Sample(tuple(layers), _material(sub["material"], "substrate.material", path.parent), ambient,
+                      _instrument(doc["instrument"]) if "instrument" in doc else None)
     except _Err as e:
         raise ValueError(f"{path}: {e}") from None
     except ValueError as e:
