@@ -142,3 +142,39 @@ def test_bad_instruments_and_the_model_file(tmp_path):
     p.write_text('[[layer]]\nthickness_nm = 100\nmaterial = 1.46\n[substrate]\nmaterial = "Si"\n[instrument]\nbandwith_nm = 2\n')
     with pytest.raises(ValueError, match=r"instrument: unknown keys \['bandwith_nm'\]"):
         jo.load_sample(p)
+
+
+def test_depolarization_is_a_measured_quantity_read_from_files_and_fitted(tmp_path):
+    """The model's depolarization is 1 - sqrt(N^2 + C^2 + S^2) of the averaged intensities; a
+    Woollam file's dPolE rows (percent, with sigma) become the quantity `depolarization`, and a
+    fit of Psi, Delta and the depolarization recovers a thickness non-uniformity."""
+    s = jo.Sample([FILM], SUB, instrument=jo.Instrument(thickness_nonuniformity=0.05))
+    q = np.asarray(s.fixed().quantities(("N", "C", "S", "depolarization"), WL, ANG))
+    np.testing.assert_allclose(q[3], 1 - np.sqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2), atol=1e-15)
+    assert np.all(q[3] > 1e-4)
+    plain = np.asarray(jo.Sample([FILM], SUB).fixed().quantities(("depolarization",), WL, ANG))
+    assert np.max(np.abs(plain)) < 1e-14
+    # a file: Psi/Delta rows, then dPolE rows (wavelength, AOI, percent, sigma)
+    wl = 400.0 + 17.0 * np.arange(30)  # (exact in the file's decimals)
+    ang = np.full(30, 70.0)
+    kinds = ("psi_deg", "delta_deg", "depolarization")
+    vals = np.asarray(s.fixed().quantities(kinds, jnp.asarray(wl), jnp.deg2rad(jnp.asarray(ang))))
+    lines = ["title", "VASEmethod[EllipsometerType=4, CompleteEASE=6.37]", "nm"]
+    lines += [f"{w:.3f}\t{a:.1f}\t{p:.8f}\t{d:.8f}\t0.01\t0.02" for w, a, p, d in zip(wl, ang, vals[0], vals[1])]
+    lines += [f"dPolE\t{w:.3f}\t{a:.1f}\t{100 * x:.8f}\t0.1" for w, a, x in zip(wl, ang, vals[2])]
+    (tmp_path / "d.dat").write_text("\n".join(lines) + "\n")
+    sp = jo.load_spectra(tmp_path / "d.dat")
+    assert sp.kinds == ("psi_deg", "delta_deg")
+    sd = sp.with_depolarization()
+    assert sd.kinds == kinds and sd.meta["format"] == "woollam"
+    np.testing.assert_allclose(sd.values[2], vals[2], atol=1e-10)
+    np.testing.assert_allclose(sd.sigma[2], 0.001)
+    model = jo.Sample([jo.Layer(FILM.material, jo.Free(790.0, 700.0, 900.0), name="ox")], SUB,
+                      instrument=jo.Instrument(thickness_nonuniformity=jo.Free(0.02, 0.0, 0.2)))
+    fit = jo.fit_stack(model, sd, global_start=False)
+    # noise-free data: the solution is the truth to the solver's stop (a step below 1e-3 of a
+    # standard error); the errors are those of the files' sigmas
+    x, sd = np.asarray(fit.values), np.asarray(fit.stderr)
+    assert np.all(np.abs(x - [800.0, 0.05]) < 0.01 * sd) and sd[1] < 0.005, (x, sd)
+    with pytest.raises(ValueError, match="no depolarization in the file"):
+        jo.make_spectra(wl, ang, {"psi_deg": vals[0]}).with_depolarization()

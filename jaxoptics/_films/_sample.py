@@ -257,7 +257,9 @@ def model_quantities(res, kinds, flat_out=False):
     instrument's `rho = r_p / r_s` is `tan(Psi) exp(i Delta)` with `N = n - ik`, which equals
     `conj(X) / |r_s|^2` here (`exp(-i omega t)`, `N = n + ik`, and this package's `r_p` sign):
     so `N = (R_s - R_p) / (R_s + R_p)`, `C = 2 Re(X) / (R_s + R_p)`, `S = -2 Im(X) / (R_s + R_p)`,
-    `Psi = atan(sqrt(R_p / R_s))`, `Delta = atan2(S, C)` (degrees in `(-180, 180]`)."""
+    `Psi = atan(sqrt(R_p / R_s))`, `Delta = atan2(S, C)` (degrees in `(-180, 180]`), and the
+    depolarization `1 - sqrt(N^2 + C^2 + S^2)` (one minus the degree of polarization of the light
+    reflected from a beam polarized at 45 degrees: 0 for a coherent model)."""
     # stored once (values and derivatives): every quantity reads them, and XLA would otherwise
     # recompute the stack's last steps in each quantity's loop
     Rs, Rp, X = materialize_both(res.R_s), materialize_both(res.R_p), materialize_both(res.rp_rs)
@@ -280,6 +282,8 @@ def model_quantities(res, kinds, flat_out=False):
             # stack, where X is real and its zero imaginary part carries either sign) is pi
             a = _atan2(get("S"), get("C"))
             v = jnp.degrees(jnp.where(a <= -jnp.pi, a + 2 * jnp.pi, a))
+        elif k == "depolarization":  # 1 - sqrt(N^2 + C^2 + S^2)
+            v = 1 - jnp.sqrt((Rs - Rp) ** 2 + 4 * (jnp.real(X) ** 2 + jnp.imag(X) ** 2)) / tot
         elif k == "R":
             v = 0.5 * tot
         elif k == "T":

@@ -39,7 +39,7 @@ The method, per spectrum:
    max(1, chi2_reduced)`.
 
 Without sigma columns, quantities are weighted by nominal standard deviations (`DEFAULT_SIGMA`:
-0.05 degrees for psi, 0.1 for delta, 0.002 for N, C, S, R and T) so that mixed quantities have
+0.05 degrees for psi, 0.1 for delta, 0.002 for N, C, S, R, T and the depolarization) so that mixed quantities have
 comparable weights; the overall scale is then estimated from the fit.
 
 This file checks the input and drives the compiled calls; the stages themselves are named
@@ -73,7 +73,7 @@ if TYPE_CHECKING:
 from . import _stack_fit_stages as _stages
 
 DEFAULT_SIGMA = {"psi_deg": 0.05, "delta_deg": 0.1, "N": 0.002, "C": 0.002, "S": 0.002,
-                 "R": 0.002, "R_s": 0.002, "R_p": 0.002, "T": 0.002, "T_s": 0.002, "T_p": 0.002}
+                 "R": 0.002, "R_s": 0.002, "R_p": 0.002, "T": 0.002, "T_s": 0.002, "T_p": 0.002, "depolarization": 0.002}
 
 
 @result

@@ -26,7 +26,7 @@ import numpy as np
 if TYPE_CHECKING:
     from jaxtyping import ArrayLike, Float
 
-KINDS = ("psi_deg", "delta_deg", "N", "C", "S", "R", "R_s", "R_p", "T", "T_s", "T_p")
+KINDS = ("psi_deg", "delta_deg", "N", "C", "S", "R", "R_s", "R_p", "T", "T_s", "T_p", "depolarization")
 _MUELLER = tuple(f"m{i}{j}" for i in range(1, 5) for j in range(1, 5))
 _NEAR = {"psi": "psi_deg", "delta": "delta_deg", "wavelength": "wavelength_nm or wavelength_um", "lambda": "wavelength_nm",
          "angle": "angle_deg", "theta": "angle_deg", "aoi": "angle_deg", "rs": "R_s", "rp": "R_p", "ts": "T_s", "tp": "T_p",
@@ -36,12 +36,14 @@ _NEAR = {"psi": "psi_deg", "delta": "delta_deg", "wavelength": "wavelength_nm or
 # The range each measured quantity lies in. Measured values may stray outside it by noise, up to 5%
 # of its width; beyond that they are refused as a mix-up of units or columns, with the reason.
 _RANGES = {"psi_deg": (0.0, 90.0), **dict.fromkeys(("N", "C", "S"), (-1.0, 1.0)),
-           **dict.fromkeys(("R", "R_s", "R_p", "T", "T_s", "T_p"), (0.0, 1.0)), **dict.fromkeys(_MUELLER, (-1.0, 1.0))}
+           **dict.fromkeys(("R", "R_s", "R_p", "T", "T_s", "T_p", "depolarization"), (0.0, 1.0)),
+           **dict.fromkeys(_MUELLER, (-1.0, 1.0))}
 _WHY = {"psi_deg": "Psi lies in [0, 90] degrees (Delta in the psi column?)",
         **dict.fromkeys(("N", "C", "S"), "N, C and S are cos 2Psi, sin 2Psi cos Delta and sin 2Psi sin Delta, in [-1, 1]"),
         **dict.fromkeys(("R", "R_s", "R_p", "T", "T_s", "T_p"),
                         "reflectance and transmittance are fractions in [0, 1] (percent? divide by 100)"),
-        **dict.fromkeys(_MUELLER, "the elements of a Mueller matrix normalized by m11 lie in [-1, 1]")}
+        **dict.fromkeys(_MUELLER, "the elements of a Mueller matrix normalized by m11 lie in [-1, 1]"),
+        "depolarization": "depolarization is a fraction in [0, 1] (a file's percent divided by 100)"}
 
 
 def _out_of_range(kind, v):
@@ -85,6 +87,35 @@ class Spectra(NamedTuple):
     @property
     def batch_shape(self):
         return self.values.shape[:-2]
+
+    def with_depolarization(self, sigma: float | None = None) -> Spectra:
+        """These spectra with the file's depolarization (`meta["depolarization_percent"]`, the
+        `dPolE` rows of a Woollam file) added as the measured quantity `"depolarization"` (a
+        fraction: `1 - sqrt(N^2 + C^2 + S^2)`), to be fitted with the rest. Its sigma: the file's
+        (`depolarization_sigma_percent`), else `sigma` (a fraction) where the spectra carry sigmas.
+        Raises where the file has no depolarization or lacks it at some point (naming the point)."""
+        meta = self.meta or {}
+        if "depolarization_percent" not in meta:
+            raise ValueError(f"{self.path or 'these spectra'}: no depolarization in the file (meta['depolarization_percent'])")
+        d = np.asarray(meta["depolarization_percent"], np.float64) / 100
+        missing = np.flatnonzero(~np.isfinite(d.reshape(-1)))
+        if missing.size:
+            i = int(missing[0]) % d.shape[-1]
+            raise ValueError(f"{self.path or 'these spectra'}: no depolarization at {self.wavelength_nm[i]:g} nm, "
+                             f"{self.angle_deg[i]:g} deg ({missing.size} points lack it)")
+        values = {k: self.values[..., q, :] for q, k in enumerate(self.kinds)} | {"depolarization": d}
+        sig = None
+        if self.sigma is not None:
+            s_file = meta.get("depolarization_sigma_percent")
+            if s_file is not None and np.all(np.isfinite(s_file)):
+                s_d = np.asarray(s_file, np.float64) / 100
+            elif sigma is not None:
+                s_d = np.broadcast_to(np.float64(sigma), d.shape)
+            else:
+                raise ValueError("the spectra carry sigmas and the file gives none for the depolarization: pass sigma=")
+            sig = {k: self.sigma[..., q, :] for q, k in enumerate(self.kinds)} | {"depolarization": s_d}
+        out = make_spectra(self.wavelength_nm, self.angle_deg, values, sigma=sig, sites=self.sites, site_xy=self.site_xy)
+        return out._replace(path=self.path, meta=self.meta)
 
 
 def make_spectra(wavelength_nm: Float[ArrayLike, " P"], angle_deg: Float[ArrayLike, "#P"], values: dict, *, sigma: dict | None = None,

@@ -162,6 +162,8 @@ def read_woollam(path, lines, conv: Conventions):
                 fail(path, ln, f"this {kind} row (wavelength {nums[0]:g}, AOI {nums[1]:g}) matches no data row")
             name = "depolarization_percent" if kind == "dpole" else "uR"
             extra.setdefault(name, np.full(len(rows), np.nan))[r] = nums[2] if np.isfinite(nums[2]) else np.nan
+            if kind == "dpole" and len(nums) == 4:
+                extra.setdefault("depolarization_sigma_percent", np.full(len(rows), np.nan))[r] = nums[3]
     group = np.asarray([r[2] for r in rows]) if dynamic else None
     meta["conventions"] = conv._asdict()
     return finish(path, "woollam", wl, aoi, values, sigmas, line_no, group=group, group_name="time", meta=meta, extra=extra,
