@@ -116,6 +116,8 @@ _LAZY = {
     "fit_joint": "._fitting._joint",
     "Dataset": "._fitting._joint",
     "fit_statistics": "._fitting._statistics",
+    "fit_nk": "._fitting._nk",
+    "NKFit": "._fitting._nk",
     "absolute_reflectance": "._fitting._reflectometry",
     "fft_thickness": "._fitting._reflectometry",
     "ThicknessEstimate": "._fitting._reflectometry",
@@ -135,6 +137,8 @@ if _typing.TYPE_CHECKING:
     from ._fitting._stack_fit import StackFit as StackFit
     from ._fitting._stack_fit import fit_stack as fit_stack
     from ._fitting._joint import Dataset as Dataset
+    from ._fitting._nk import NKFit as NKFit
+    from ._fitting._nk import fit_nk as fit_nk
     from ._fitting._joint import fit_joint as fit_joint
     from ._fitting._reflectometry import ThicknessEstimate as ThicknessEstimate
     from ._fitting._reflectometry import absolute_reflectance as absolute_reflectance

@@ -1,0 +1,226 @@
+"""Point-by-point n and k (`fit_nk`): one layer's index fitted at every wavelength on its own,
+the rest of the sample held at the values of a parametric fit.
+
+Each wavelength's data (all its angles and quantities) make a two-parameter least-squares problem
+in `n` and `k`, solved by Levenberg-Marquardt for all wavelengths at once (a `vmap` of optimistix's
+solver); its start is the layer's index from the parametric model (a dispersion law, a B-spline)
+at that wavelength, which keeps each solution on the branch the parametric fit chose. With
+`smoothness > 0` the wavelengths are then solved together from there, with the penalty rows
+`smoothness (x_{j+1} - 2 x_j + x_{j-1}) / sigma_x` for `n` and `k` added to the residuals
+(`sigma_x` the median standard error of the independent solutions: at `smoothness = 1` a second
+difference of one standard error costs as much as one standard deviation of the data), a
+Tikhonov regularization of the curvature. It biases a curve whose true curvature between
+neighbouring wavelengths exceeds the data's errors: it suits densely sampled, noisy spectra, and
+its weight is the user's choice (a value near 0.1 is a mild one). The standard errors are each
+wavelength's own, from the Jacobian of its data at the solution (`(J^T J)^-1`, scaled by
+chi^2/dof, at least 1 where the data carried sigma); with smoothness they leave out what the
+penalty adds, so they are an upper bound.
+
+`n = 1e-3 - 1 + sqrt(u^2 + 1)` and `k = -1 + sqrt(v^2 + 1)` keep `n > 0` and `k >= 0` (gain is
+not a layer material), as `fit_stack` does its bounds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._films._dispersion import Constant, Tabulated
+from .._films._sample import Sample
+from .._io._spectra import Spectra
+from ._stack_fit_stages import _wrap_deg
+
+if TYPE_CHECKING:
+    from jaxtyping import ArrayLike
+
+_N_MIN = 1e-3
+
+
+@dataclasses.dataclass(frozen=True)
+class NKFit:
+    """Result of `fit_nk`, one row per wavelength (increasing).
+
+    **Fields:** `wavelength_nm`, `n`, `k`, `n_err`, `k_err` (standard errors), `chi2_reduced`
+    (per wavelength; of the whole problem with smoothness), `converged`; all NumPy arrays. `layer`
+    names the fitted layer.
+
+    `material()` is the result as a `Tabulated` material (for a `Sample` or `fit_stack`);
+    `save_yaml(path)` writes it as a refractiveindex.info YAML file (`tabulated nk`, micrometres),
+    which `load_rii_yaml` reads back.
+    """
+
+    layer: str
+    wavelength_nm: np.ndarray
+    n: np.ndarray
+    k: np.ndarray
+    n_err: np.ndarray
+    k_err: np.ndarray
+    chi2_reduced: np.ndarray
+    converged: np.ndarray
+
+    def material(self, name: str | None = None) -> Tabulated:
+        lam = self.wavelength_nm / 1000
+        return Tabulated((lam, self.n), (lam, self.k), name=name or f"{self.layer} (point by point)",
+                         reference="jaxoptics fit_nk")
+
+    def save_yaml(self, path: str | Path, *, reference: str = "jaxoptics fit_nk, point-by-point fit") -> None:
+        rows = "\n".join(f"        {w / 1000:.9g} {n:.9g} {k:.9g}" for w, n, k in zip(self.wavelength_nm, self.n, self.k))
+        ref = reference.replace('"', "'")
+        Path(path).write_text(f'REFERENCES: "{ref}"\nCOMMENTS: "layer {self.layer}"\nDATA:\n  - type: tabulated nk\n'
+                              f"    data: |\n{rows}\n", encoding="utf-8")
+
+
+def _to_nk(u):
+    return jnp.stack([_N_MIN - 1 + jnp.sqrt(u[0] * u[0] + 1), -1 + jnp.sqrt(u[1] * u[1] + 1)])
+
+
+def _from_nk(n, k):
+    n = np.maximum(n, _N_MIN * 1.001)
+    k = np.maximum(k, 1e-6)  # inside the bound: the map's derivative is 0 on it
+    return np.stack([np.sqrt((n - _N_MIN + 1) ** 2 - 1), np.sqrt((k + 1) ** 2 - 1)], -1)
+
+
+def fit_nk(sample: Sample, spectra: Spectra, layer: str, *, values: ArrayLike | None = None, smoothness: float = 0.0,
+           max_steps: int = 256) -> NKFit:
+    """Fit the index `n + ik` of one layer of `sample` at every wavelength of `spectra` on its own.
+
+    **Arguments:**
+
+    - `sample`: the `Sample`; `values`: its free parameters' values (a `fit_stack` result's
+      `values` for one spectrum, in `sample.free_names()` order), or None for the `Free` starts.
+      The thicknesses and every other medium are held there.
+    - `layer`: the name of the layer whose index is fitted (`"substrate"` for the substrate). Its
+      model at `values` gives each wavelength's start.
+    - `spectra`: one spectrum (no map axes); each wavelength needs at least two data (angles times
+      quantities) for its two unknowns.
+    - `smoothness`: 0 (each wavelength independent) or the weight of the penalty on the
+      second differences of `n` and `k` between neighbouring wavelengths (module docstring).
+    - `max_steps`: Levenberg-Marquardt steps.
+
+    **Returns:** an `NKFit`. Raises `ValueError` before any tracing for a map, an unknown layer, or
+    a wavelength with fewer than two data.
+    """
+    import optimistix as optx
+
+    from ._stack_fit import DEFAULT_SIGMA
+
+    if not isinstance(sample, Sample) or not isinstance(spectra, Spectra):
+        raise ValueError("fit_nk(sample: Sample, spectra: Spectra, layer: str)")
+    if spectra.values.ndim != 2:
+        raise ValueError(f"fit_nk fits one spectrum; these spectra have map axes {spectra.values.shape[:-2]}")
+    names = sample.layer_names + ["substrate"]
+    if layer not in names:
+        raise ValueError(f"layer {layer!r} is not in the sample; its layers: {', '.join(names)}")
+    if not (isinstance(smoothness, (int, float)) and smoothness >= 0):
+        raise ValueError(f"smoothness must be a number >= 0, got {smoothness!r}")
+    free = sample.free()
+    vals = [f.value for f in free] if values is None else [float(v) for v in np.asarray(values).reshape(-1)]
+    if len(vals) != len(free):
+        raise ValueError(f"values has {len(vals)} entries for the sample's {len(free)} free parameters")
+    dtype = jnp.dtype(jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32)
+    resolved = sample.with_values(vals)
+    kinds, Q = spectra.kinds, len(spectra.kinds)
+    wl, ang = np.asarray(spectra.wavelength_nm), np.asarray(spectra.angle_deg)
+    uw = np.unique(wl)
+    counts = np.asarray([np.sum(wl == w) for w in uw])
+    few = np.flatnonzero(counts * Q < 2)
+    if few.size:
+        raise ValueError(f"{uw[few[0]]:g} nm has {counts[few[0]] * Q} data for the two unknowns n and k")
+    W, A = uw.size, int(counts.max())
+    sigma_given = spectra.sigma is not None
+    S_all = (np.asarray(spectra.sigma) if sigma_given
+             else np.broadcast_to(np.asarray([DEFAULT_SIGMA[k] for k in kinds])[:, None], spectra.values.shape))
+    # per wavelength, its angles padded to A (repeating its last one, with zero weight)
+    idx = np.zeros((W, A), int)
+    mask = np.zeros((W, A), bool)
+    for j, w in enumerate(uw):
+        ii = np.flatnonzero(wl == w)
+        idx[j, :ii.size], idx[j, ii.size:] = ii, ii[-1]
+        mask[j, :ii.size] = True
+    Vw = jnp.asarray(np.moveaxis(np.asarray(spectra.values)[:, idx], 0, 1), dtype)  # (W, Q, A)
+    Wt = jnp.asarray(np.moveaxis(np.where(mask[None], 1 / S_all[:, idx], 0.0), 0, 1), dtype)
+    lam = jnp.asarray(uw, dtype)
+    angr = jnp.asarray(np.deg2rad(ang[idx]), dtype)
+    is_delta = np.asarray([k == "delta_deg" for k in kinds])[:, None]
+
+    if layer == "substrate":
+        seed_model = resolved.substrate
+        put = lambda nk: dataclasses.replace(resolved, substrate=Constant(nk[0], nk[1]))
+    else:
+        li = sample.layer_names.index(layer)
+        seed_model = resolved.layers[li].material
+        put = lambda nk: dataclasses.replace(resolved, layers=tuple(
+            dataclasses.replace(lay, material=Constant(nk[0], nk[1])) if i == li else lay
+            for i, lay in enumerate(resolved.layers)))
+    N0 = np.asarray(seed_model.nk(jnp.asarray(uw / 1000, dtype)))
+    U0 = jnp.asarray(_from_nk(N0.real, N0.imag), dtype)  # (W, 2)
+
+    def residuals_nk(x, j_args):
+        """One wavelength's weighted residuals at `x = (n, k)`."""
+        lam_j, ang_j, V_j, W_j = j_args
+        m = put(x).quantities(kinds, jnp.broadcast_to(lam_j, ang_j.shape), ang_j)  # (Q, A)
+        d = m - V_j
+        d = jnp.where(jnp.asarray(is_delta), _wrap_deg(d), d)
+        return (d * W_j).reshape(-1)
+
+    residuals = lambda u, j_args: residuals_nk(_to_nk(u), j_args)
+
+    tol = max(1e-9, 100 * float(jnp.finfo(dtype).eps))
+    lm: optx.AbstractLeastSquaresSolver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
+    per = (lam, angr, Vw, Wt)
+    def one(u0, a):
+        sol = optx.least_squares(residuals, lm, u0, a, max_steps=max_steps, throw=False)
+        return sol.value, sol.result == optx.RESULTS.successful
+
+    U, ok = jax.jit(jax.vmap(one))(U0, per)
+    X, err, chi2r, conv = _errors(residuals_nk, jax.vmap(_to_nk)(U), ok, per, counts * Q, sigma_given, dtype)
+    if smoothness > 0:
+        # one problem over all wavelengths from the independent solutions: the data's residuals
+        # and the differences between neighbours in units of the median standard errors
+        scale = jnp.asarray([np.median(err[:, 0]), max(float(np.median(err[:, 1])), 1e-12)], dtype)
+
+        def joint(Uf, _):
+            U_ = Uf.reshape(W, 2)
+            r = jax.vmap(residuals)(U_, per).reshape(-1)
+            pen = smoothness * jnp.diff(jax.vmap(_to_nk)(U_), 2, axis=0) / scale[None, :]
+            return jnp.concatenate([r, pen.reshape(-1)])
+
+        def whole(u0):
+            sol = optx.least_squares(joint, lm, u0, None, max_steps=max_steps, throw=False)
+            return sol.value, sol.result == optx.RESULTS.successful
+
+        Uf, ok1 = jax.jit(whole)(U.reshape(-1))
+        X, err, chi2r, conv = _errors(residuals_nk, jax.vmap(_to_nk)(Uf.reshape(W, 2)), jnp.broadcast_to(ok1, (W,)), per,
+                                      counts * Q, sigma_given, dtype, edm_test=False)
+    return NKFit(layer, uw, X[:, 0], X[:, 1], err[:, 0], err[:, 1], chi2r, conv)
+
+
+def _errors(residuals_nk, X, ok, per, m, sigma_given, dtype, edm_test=True):
+    """`(X, err, chi2_reduced, converged)` per wavelength (NumPy) from the Jacobian in `(n, k)` of
+    each wavelength's own residuals at `X` (`m` data each)."""
+    r = jax.vmap(residuals_nk)(X, per)
+    J = jax.vmap(jax.jacfwd(residuals_nk))(X, per)  # (W, Q A, 2)
+    chi2r = jnp.sum(r * r, axis=-1) / jnp.maximum(jnp.asarray(m, dtype) - 2, 1)
+    JtJ = jnp.einsum("wmi,wmj->wij", J, J)
+    inv = jnp.linalg.pinv(JtJ)
+    cov = inv * (jnp.maximum(chi2r, 1) if sigma_given else chi2r)[:, None, None]
+    err = jnp.sqrt(jnp.abs(jnp.diagonal(cov, axis1=-2, axis2=-1)))
+    conv = np.asarray(ok)
+    if edm_test:
+        # Converged: the solver met its tolerances, or the Gauss-Newton step left at the solution
+        # would lower chi^2 by less than 1e-6 (MINUIT's EDM; at k = 0 with the step pointing to
+        # k < 0, the step in n alone): near the bound k = 0 the solver's own test is met slowly.
+        g = jnp.einsum("wmi,wm->wi", J, r)
+        step = -jnp.einsum("wij,wj->wi", inv, g)
+        edm = jnp.einsum("wi,wij,wj->w", g, inv, g)
+        at_bound = (X[:, 1] <= 1e-10) & (step[:, 1] < 0)
+        edm = jnp.where(at_bound, g[:, 0] ** 2 / JtJ[:, 0, 0], edm)
+        conv = conv | np.asarray(edm < 1e-6)
+    conv = conv & np.all(np.isfinite(np.asarray(X)), axis=-1)
+    return np.asarray(X), np.asarray(err), np.asarray(chi2r), conv
+
