@@ -35,8 +35,15 @@ def _energy(wavelength_um):
     return HC_EV_UM / jnp.asarray(wavelength_um)
 
 
+class _FromEps(Dispersion):
+    """A model defined by its dielectric function: `N = sqrt(eps)`, the principal root."""
+
+    def nk(self, wavelength_um):
+        return _from_eps(self.eps(wavelength_um))
+
+
 @dataclasses.dataclass(frozen=True)
-class Gaussian(Dispersion):
+class Gaussian(_FromEps):
     r"""A Gaussian oscillator (energies in eV), the broadened absorption band of GenOsc:
 
     `eps2(E) = A [exp(-((E - E0) / s)^2) - exp(-((E + E0) / s)^2)]`, `s = Br / (2 sqrt(ln 2))`;
@@ -68,12 +75,9 @@ class Gaussian(Dispersion):
         eps1 = self.eps_inf + 2 * self.A / math.sqrt(math.pi) * (dawsn(hi) - dawsn(lo))
         return jax_complex(eps1, eps2)
 
-    def nk(self, wavelength_um):
-        return _from_eps(self.eps(wavelength_um))
-
 
 @dataclasses.dataclass(frozen=True)
-class Poles(Dispersion):
+class Poles(_FromEps):
     r"""Lossless poles outside the measured range (energies in eV), the `Permanent Poles` of
     ellipsometry software:
 
@@ -97,9 +101,6 @@ class Poles(Dispersion):
         E = _energy(wavelength_um)
         E2 = E * E
         return jax_complex(self.eps_inf + self.uv_amp / (self.uv_energy * self.uv_energy - E2) - self.ir_amp / E2, 0.0)
-
-    def nk(self, wavelength_um):
-        return _from_eps(self.eps(wavelength_um))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,7 +176,7 @@ def _kk_eps1(eps2, E, breaks):
 
 
 @dataclasses.dataclass(frozen=True)
-class CodyLorentz(Dispersion):
+class CodyLorentz(_FromEps):
     r"""The Cody-Lorentz model of amorphous semiconductors (Ferlauto et al.), energies in eV:
 
     `eps2(E) = G(E) L(E)` for `E > Et`, `(E1 / E) exp((E - Et) / Eu)` for `0 < E <= Et` (an Urbach
@@ -221,9 +222,6 @@ class CodyLorentz(Dispersion):
         breaks = (self.Eg, self.Et, self.Eg + self.Ep, self.E0 - self.C, self.E0, self.E0 + self.C)
         eps1 = self.eps_inf + _kk_eps1(self.eps2, E, breaks)
         return jax_complex(eps1, self.eps2(E))
-
-    def nk(self, wavelength_um):
-        return _from_eps(self.eps(wavelength_um))
 
 
 # ---- the Kramers-Kronig-consistent B-spline ----------------------------------------------------
@@ -277,7 +275,7 @@ def _cubic_bspline_hilbert(s):
 
 
 @dataclasses.dataclass(frozen=True)
-class BSpline(Dispersion):
+class BSpline(_FromEps):
     r"""The Kramers-Kronig-consistent B-spline dielectric function (Johs and Hale), energies in eV:
 
     `eps2(E) = sum_i c_i B((E - E_i) / h)`,
@@ -331,9 +329,6 @@ class BSpline(Dispersion):
             eps1 = eps1 + c / math.pi * (_cubic_bspline_hilbert(s) + _cubic_bspline_hilbert((-E - Ei) / h))
         return jax_complex(eps1, eps2)
 
-    def nk(self, wavelength_um):
-        return _from_eps(self.eps(wavelength_um))
-
 
 # ---- the general oscillator sum ---------------------------------------------------------------
 
@@ -342,7 +337,7 @@ OSCILLATORS: tuple[type, ...] = (Gaussian, Poles, CodyLorentz, BSpline)
 
 
 @dataclasses.dataclass(frozen=True)
-class GenOsc(Dispersion):
+class GenOsc(_FromEps):
     r"""A general oscillator sum, like Woollam's GenOsc: `eps(E) = eps_inf + sum_j (eps_j(E) -
     eps_inf_j)` over `oscillators`, each a `Gaussian`, `TaucLorentz`, `CodyLorentz`,
     `DrudeLorentz` (`Drude`, `Lorentz`), `Poles` or `BSpline` with its own parameters (fixed or
@@ -374,5 +369,3 @@ class GenOsc(Dispersion):
             out = out + (o.eps(wavelength_um) - o.eps_inf)
         return out
 
-    def nk(self, wavelength_um):
-        return _from_eps(self.eps(wavelength_um))
