@@ -80,7 +80,8 @@ def _from_eps(eps):
 
 
 def _energy(wavelength_um):
-    return HC_EV_UM / wavelength_um
+    """The photon energy (eV) of a vacuum wavelength in micrometres."""
+    return HC_EV_UM / jnp.asarray(wavelength_um)
 
 
 def _fixed_zero(v):

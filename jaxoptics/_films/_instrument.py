@@ -22,14 +22,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._dispersion import Free
+from ._dispersion import Free, _fixed_zero
 from ._stack import stack
 
 _FWHM_PER_SIGMA = 2 * math.sqrt(2 * math.log(2))
-
-
-def _fixed_zero(v) -> bool:
-    return not isinstance(v, Free) and isinstance(v, (int, float)) and v == 0
 
 
 def _gauss_hermite(n):

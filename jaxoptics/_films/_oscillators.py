@@ -25,14 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._dispersion import HC_EV_UM, Dispersion, Free, _as_params, _from_eps, jax_complex
+from ._dispersion import Dispersion, DrudeLorentz, Free, TaucLorentz, _as_params, _energy, _from_eps, jax_complex
 
-# FWHM = 2 sqrt(ln 2) sigma for exp(-((E - E0) / sigma)^2)
-_FWHM_PER_SIGMA = 2 * math.sqrt(math.log(2))
-
-
-def _energy(wavelength_um):
-    return HC_EV_UM / jnp.asarray(wavelength_um)
+# FWHM = 2 sqrt(ln 2) s for exp(-((E - E0) / s)^2)
+_FWHM_PER_S = 2 * math.sqrt(math.log(2))
 
 
 class _FromEps(Dispersion):
@@ -69,7 +65,7 @@ class Gaussian(_FromEps):
         from jax.scipy.special import dawsn
 
         E = _energy(wavelength_um)
-        s = self.Br / _FWHM_PER_SIGMA
+        s = self.Br / _FWHM_PER_S
         lo, hi = (E - self.E0) / s, (E + self.E0) / s
         eps2 = self.A * (jnp.exp(-lo * lo) - jnp.exp(-hi * hi))
         eps1 = self.eps_inf + 2 * self.A / math.sqrt(math.pi) * (dawsn(hi) - dawsn(lo))
@@ -333,7 +329,7 @@ class BSpline(_FromEps):
 # ---- the general oscillator sum ---------------------------------------------------------------
 
 #: the models a `GenOsc` sums (each contributes its `eps` less its own `eps_inf`)
-OSCILLATORS: tuple[type, ...] = (Gaussian, Poles, CodyLorentz, BSpline)
+OSCILLATORS: tuple[type, ...] = (Gaussian, TaucLorentz, CodyLorentz, DrudeLorentz, Poles, BSpline)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -350,14 +346,11 @@ class GenOsc(_FromEps):
     _params = ("eps_inf", "oscillators")
 
     def __post_init__(self):
-        from ._dispersion import DrudeLorentz, TaucLorentz
-
         osc = tuple(self.oscillators)
-        kinds = OSCILLATORS + (TaucLorentz, DrudeLorentz)
         for j, o in enumerate(osc):
-            if not isinstance(o, kinds):
+            if not isinstance(o, OSCILLATORS):
                 raise ValueError(f"GenOsc: oscillators[{j}] is {type(o).__name__}; an oscillator is one of "
-                                 f"{', '.join(sorted(k.__name__ for k in kinds))}")
+                                 f"{', '.join(sorted(k.__name__ for k in OSCILLATORS))}")
             if isinstance(o.eps_inf, Free):
                 raise ValueError(f"GenOsc: oscillators[{j}].eps_inf is Free; only the sum's eps_inf counts")
         object.__setattr__(self, "oscillators", osc)

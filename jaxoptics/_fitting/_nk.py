@@ -23,6 +23,7 @@ not a layer material), as `fit_stack` does its bounds.
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -33,7 +34,7 @@ import numpy as np
 from .._films._dispersion import Constant, Tabulated
 from .._films._sample import Sample
 from .._io._spectra import Spectra
-from ._stack_fit_stages import _wrap_deg
+from ._stack_fit_stages import _Bound, _solver_tol, _wrap_deg
 
 if TYPE_CHECKING:
     from jaxtyping import ArrayLike
@@ -75,14 +76,20 @@ class NKFit:
                               f"    data: |\n{rows}\n", encoding="utf-8")
 
 
+# n > 0 and k >= 0 through `fit_stack`'s change of variables for a lower bound
+_BOUNDS = (_Bound(_N_MIN, math.inf), _Bound(0.0, math.inf))
+
+
 def _to_nk(u):
-    return jnp.stack([_N_MIN - 1 + jnp.sqrt(u[0] * u[0] + 1), -1 + jnp.sqrt(u[1] * u[1] + 1)])
+    return jnp.stack([b.x(u[i]) for i, b in enumerate(_BOUNDS)])
 
 
 def _from_nk(n, k):
+    """The solver's variables of starts `n`, `k`, moved inside the bounds (on a bound the change of
+    variables has derivative 0: the solver would not move it)."""
     n = np.maximum(n, _N_MIN * 1.001)
-    k = np.maximum(k, 1e-6)  # inside the bound: the map's derivative is 0 on it
-    return np.stack([np.sqrt((n - _N_MIN + 1) ** 2 - 1), np.sqrt((k + 1) ** 2 - 1)], -1)
+    k = np.maximum(k, 1e-6)
+    return jnp.stack([_BOUNDS[0].u(jnp.asarray(n)), _BOUNDS[1].u(jnp.asarray(k))], -1)
 
 
 def fit_nk(sample: Sample, spectra: Spectra, layer: str, *, values: ArrayLike | None = None, smoothness: float = 0.0,
@@ -170,7 +177,7 @@ def fit_nk(sample: Sample, spectra: Spectra, layer: str, *, values: ArrayLike | 
 
     residuals = lambda u, j_args: residuals_nk(_to_nk(u), j_args)
 
-    tol = max(1e-9, 100 * float(jnp.finfo(dtype).eps))
+    tol = _solver_tol(dtype)
     lm: optx.AbstractLeastSquaresSolver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
     per = (lam, angr, Vw, Wt)
     def one(u0, a):

@@ -172,7 +172,7 @@ def _oscillator(v, where, base: Path):
     if not isinstance(v, dict) or "model" not in v:
         raise _Err(f"{where}: an oscillator is {{ model = ..., ... }}")
     m = _material(v, where, base)
-    if not isinstance(m, OSCILLATORS + (TaucLorentz, DrudeLorentz)):
+    if not isinstance(m, OSCILLATORS):
         raise _Err(f"{where}: {v['model']!r} is not an oscillator (gaussian, tauc-lorentz, cody-lorentz, drude-lorentz, poles, b-spline)")
     return m
 
