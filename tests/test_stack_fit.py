@@ -202,6 +202,54 @@ def test_levenberg_marquardt_stage_runs_only_when_needed(monkeypatch):
     assert np.allclose(np.asarray(lm.stderr), np.asarray(ref.stderr), rtol=1e-3)
 
 
+def test_best_start_of_a_spectrum_no_start_fitted_is_its_lowest_chi2():
+    """Among a spectrum's starts the converged one of lowest chi^2; where none converged, the
+    lowest chi^2 of all (not the first start)."""
+    import types
+
+    from jaxoptics._fitting._stack_fit_stages import _Bound, best_start
+
+    prob = types.SimpleNamespace(B=2, starts=3, p=1, bounds=(_Bound(-math.inf, math.inf),))
+    u = jnp.array([[1.0], [2.0], [3.0], [4.0], [5.0], [6.0]])
+    c2 = jnp.array([5.0, 1.0, 3.0, 9.0, 2.0, jnp.nan])
+    ok = jnp.array([True, False, True, False, False, False])
+    x, c, conv, _ = best_start(prob, u, c2, ok, jnp.zeros(6, jnp.int32))
+    np.testing.assert_array_equal(np.asarray(x)[:, 0], [3.0, 5.0])
+    np.testing.assert_array_equal(np.asarray(c), [3.0, 2.0])
+    np.testing.assert_array_equal(np.asarray(conv), [True, False])
+
+
+@pytest.mark.slow
+def test_a_spectrum_no_solver_fits_comes_back_below_its_start(monkeypatch):
+    """A Gauss-Newton that wanders off (simulated: its points moved far from where it ended, not
+    converged) and a Levenberg-Marquardt cut to two steps: no spectrum converges, and each comes
+    back at a point whose chi^2 is at most its start's (Levenberg-Marquardt only takes steps that
+    lower chi^2; Gauss-Newton's point is kept only where it is lower still), flagged as not
+    converged."""
+    from jaxoptics._fitting import _stack_fit, _stack_fit_stages
+
+    sp = _spectra(np.array([505.0, 520.0, 535.0]), seed=3)  # started near the minimum: a wandering step is costly
+    model = _model(520.0)
+    wl, ang = jnp.asarray(sp.wavelength_nm), jnp.deg2rad(jnp.asarray(sp.angle_deg))
+    start = model.with_values([_stack_fit_stages._Bound(f.lower, f.upper).inside(f.value) for f in model.free()])
+    r0 = (np.asarray(sp.values) - np.asarray(start.quantities(sp.kinds, wl, ang))) / np.asarray(sp.sigma)
+    chi2_start = np.sum(r0 ** 2, axis=(-2, -1)) / (r0[0].size - len(model.free()))
+    real = _stack_fit_stages.gauss_newton_passes
+
+    def wandering(prob, U0, V, S):
+        u, ok, steps, A, c2, have = real(prob, U0, V, S)
+        return u + jnp.array([[1.0, 1.0, 0.3]]), jnp.zeros_like(ok), steps, A, c2, jnp.zeros_like(have)
+
+    _stack_fit._program.cache_clear()
+    monkeypatch.setattr(_stack_fit_stages, "gauss_newton_passes", wandering)
+    try:
+        fit = jo.fit_stack(model, sp, global_start=False, max_steps=2)
+    finally:
+        _stack_fit._program.cache_clear()  # compiled with the patched stage
+    assert not np.any(np.asarray(fit.converged))
+    assert np.all(np.asarray(fit.chi2_reduced) <= chi2_start), (np.asarray(fit.chi2_reduced), chi2_start)
+
+
 @pytest.mark.slow
 def test_standard_errors_are_calibrated():
     """Over 300 noise draws the spread of the fitted thickness and A over their mean standard

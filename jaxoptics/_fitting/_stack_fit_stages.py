@@ -423,7 +423,9 @@ def gauss_newton_passes(prob: FitProblem, U0, V, S):
 def levenberg_marquardt_rescue(prob: FitProblem, V, S, U0, x, c2, ok, steps):
     """Levenberg-Marquardt (optimistix, `max_steps` a start) from the same starts `U0`, for the
     spectra Gauss-Newton did not fit (`~ok`; those problems first, so that the cost follows their
-    number), as a pool of `_LM_LANES` lanes; per spectrum, the better solution of the two.
+    number), as a pool of `_LM_LANES` lanes; per spectrum, the better solution of the two. A
+    spectrum that neither fitted keeps the point of lower chi^2: Levenberg-Marquardt's (which only
+    takes steps that lower chi^2) unless Gauss-Newton's, which can wander off, ended lower.
 
     **Returns:** `(x, c2, ok, steps, better)`, `better` where Levenberg-Marquardt's won."""
     import optimistix as optx
@@ -441,7 +443,13 @@ def levenberg_marquardt_rescue(prob: FitProblem, V, S, U0, x, c2, ok, steps):
     c22 = _pending_map(functools.partial(spectrum_chi2, prob, V, S), (u2, spec), order, count, _LM_LANES,
                        jnp.full(M, jnp.inf, prob.dtype))
     x2, c22, ok2, st2 = best_start(prob, u2, c22, ok2 & touched, st2)
-    better = ok2 & (~ok | (c22 < c2))
+    # chi^2 at Gauss-Newton's point where it did not converge (its `c2` there is the prediction
+    # of its last step, not the value at `x`), for those spectra only
+    B = prob.B
+    left = jnp.argsort(ok, stable=True)
+    c2_x = _pending_map(lambda xb, b: jnp.sum(residuals_x(prob, "all", xb, V[b], S[b]) ** 2), (x, jnp.arange(B)), left,
+                        jnp.sum(~ok), _LM_LANES, c2)
+    better = ok2 & (~ok | (c22 < c2)) | (~ok & ~ok2 & (c22 < jnp.where(jnp.isnan(c2_x), jnp.inf, c2_x)))
     return (jnp.where(better[:, None], x2, x), jnp.where(better, c22, c2), ok | ok2, steps + st2, better)
 
 
@@ -493,12 +501,13 @@ def error_estimate(prob: FitProblem, x, ok, A, c2):
 
 
 def best_start(prob: FitProblem, u, c2, ok, steps, *more):
-    """The lowest chi^2 among each spectrum's starts (and the arrays `more` of that start)."""
+    """The lowest chi^2 among each spectrum's converged starts (and the arrays `more` of that
+    start); where none converged, the lowest chi^2 among all of them."""
     B, starts, p = prob.B, prob.starts, prob.p
     x = jax.vmap(functools.partial(to_x, prob))(u).reshape(B, starts, p)
     c2 = jnp.where(jnp.isfinite(c2), c2, jnp.inf).reshape(B, starts)
     ok = ok.reshape(B, starts) & jnp.isfinite(c2)
-    k = jnp.argmin(jnp.where(ok, c2, jnp.inf), axis=1)
+    k = jnp.where(jnp.any(ok, axis=1), jnp.argmin(jnp.where(ok, c2, jnp.inf), axis=1), jnp.argmin(c2, axis=1))
     pick = lambda a: jnp.take_along_axis(a, k.reshape((B, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
     return (pick(x), pick(c2), pick(ok), pick(steps.reshape(B, starts))) + tuple(
         pick(a.reshape((B, starts) + a.shape[1:])) for a in more)
