@@ -227,13 +227,22 @@ def test_stackfit_bench_section():
     from jaxoptics.tools.bench_stack_fit import bench_stack_fit, stack_fit_table
 
     rows = bench_stack_fit(quick=True, repeats=1)
+    effects = [r for r in rows if "effect" in r]
+    rows = [r for r in rows if "effect" not in r]
     assert [r["method"].split()[0] for r in rows] == ["jaxoptics", "scipy", "scipy", "scipy"] and "pyElli" in rows[3]["method"]
     for r in rows[:2] + rows[3:]:
         assert r["run_s"] > 0 and r["converged"] == 1.0 and r["recovered"] >= 0.95, r
     # from 100 nm, 380-420 nm from these films, a local fit converges in a wrong fringe
     assert "start 100 nm" in rows[2]["method"] and rows[2]["recovered"] <= 0.5, rows[2]
-    text = stack_fit_table(rows)
+    text = stack_fit_table(rows + effects)
     assert "| jaxoptics fit_stack, one call (float64) | 500 |" in text and "vs scipy" in text
+    # the models of real samples and instruments: the plain model and all three effects (roughness
+    # and angle offset free, a bandwidth), each recovering its own data's thickness, priced against
+    # the plain model in the same run
+    assert [(r["effect"], r["free"]) for r in effects] == [("plain model", 3), ("+ all three", 5)]
+    for r in effects:
+        assert r["run_s"] > 0 and r["converged"] == 1.0 and r["recovered"] == 1.0, r
+    assert "| plain model | 3 |" in text and "| + all three | 5 |" in text and "1.00x" in text
     # scipy's calls of its model per fit include its finite-difference Jacobian's (4 parameters)
     assert rows[1]["median_calls"] >= 5 and all(r["model_eval_s"] > 0 for r in rows)
     assert "One evaluation of the model at a spectrum's 600 points" in text and "a fit would be 100x faster" in text
@@ -242,4 +251,4 @@ def test_stackfit_bench_section():
     assert agree_deg < 1e-9 and agree_jac < 1e-9 and rows[0]["bound_jac_eval_s"] > 0 and "A one-film model written" in text
     # pyElli's model is the same to rounding, and its row's time is read against jaxoptics'
     assert rows[3]["agree_deg"] < 1e-9 and rows[3]["median_calls"] >= 5 and "pyElli's to" in text
-    assert "the same scipy loop calls it" in text and text.count("x |") == 4
+    assert "the same scipy loop calls it" in text and text.count("x |") == 4 + len(effects)

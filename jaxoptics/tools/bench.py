@@ -47,7 +47,7 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "stackfit", "device
     cmd = "python -m jaxoptics bench" + (" --quick" if quick else "") + f" --sections {','.join(sections)}"
     md = [f"Measured by `{cmd}` on {report['date']}. Machine: {report['machine']}.", ""]
     total = (6 * ("fit" in sections) + 3 * ("devices" in sections) + 25 * ("kernels" in sections) + (1 + 2 * len(LAYERS)) * ("stack" in sections)
-             + 5 * ("stackfit" in sections)
+             + (5 + (2 if quick else 5)) * ("stackfit" in sections)  # the map, scipy, pyElli; the effects (EFFECTS)
              + 9 * ("latency" in sections))
     with tqdm(total=total, desc="bench", unit="step") as bar:
         if "kernels" in sections:
