@@ -446,6 +446,7 @@ def test_dispersion_fit_recovers_fused_silica():
     assert bool(fc.converged) and abs(float(fc.index(0.5893)[0]) - 1.458403) < 5e-4
 
 
+@pytest.mark.slow
 def test_dispersion_fit_reports_an_infrared_pole_beyond_the_data_honestly():
     """Fused silica's infrared pole lies at 9.9 um; data that end at 1.55 um see only its tail, so a
     2-term Sellmeier fit cannot place the pole. Over 24 noise draws: a pole put far beyond the data

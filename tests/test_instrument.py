@@ -95,6 +95,7 @@ def test_backside_reflections_are_an_incoherent_slab_times_the_fraction_collecte
                                   np.asarray(jo.Sample([FILM], glass).fixed().quantities(KINDS, WL, ANG)))
 
 
+@pytest.mark.slow
 def test_instrument_parameters_are_free_parameters_and_a_fit_recovers_an_angle_offset():
     truth = jo.Sample([FILM], SUB, instrument=jo.Instrument(angle_offset_deg=0.7, bandwidth_nm=3.0))
     wl = np.repeat(np.linspace(400.0, 900.0, 40), 2)
@@ -113,6 +114,7 @@ def test_instrument_parameters_are_free_parameters_and_a_fit_recovers_an_angle_o
     assert float(fit.chi2_reduced) == pytest.approx(1.0, abs=0.4)
 
 
+@pytest.mark.slow
 def test_gradients_in_every_effect_are_finite_and_match_differences():
     s = jo.Sample([jo.Layer(FILM.material, jo.Free(800.0, 0.0, 2000.0), name="ox")], 1.52,
                   instrument=jo.Instrument(*(jo.Free(v, 0.0, 1.0 if i == 5 else 10.0) for i, v in enumerate([0.5, 1.0, 3.0, 1.0, 0.02, 0.4]))))
@@ -144,6 +146,7 @@ def test_bad_instruments_and_the_model_file(tmp_path):
         jo.load_sample(p)
 
 
+@pytest.mark.slow
 def test_depolarization_is_a_measured_quantity_read_from_files_and_fitted(tmp_path):
     """The model's depolarization is 1 - sqrt(N^2 + C^2 + S^2) of the averaged intensities; a
     Woollam file's dPolE rows (percent, with sigma) become the quantity `depolarization`, and a

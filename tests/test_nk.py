@@ -34,6 +34,7 @@ def independent(data):
     return jo.fit_nk(seed, sp, "film")
 
 
+@pytest.mark.slow
 def test_recovers_the_index_at_every_wavelength_with_honest_errors(independent, tmp_path):
     f = independent
     N = np.asarray(TRUTH.nk(jnp.asarray(f.wavelength_nm / 1000)))
@@ -52,6 +53,7 @@ def test_recovers_the_index_at_every_wavelength_with_honest_errors(independent, 
     np.testing.assert_allclose(np.asarray(f.material().nk(lam)), f.n + 1j * f.k, rtol=1e-15)
 
 
+@pytest.mark.slow
 def test_smoothness_trades_curvature_for_chi2(data, independent):
     """Tikhonov's trade-off: a penalty on the second differences lowers the solution's curvature
     and raises the data's chi^2 (the L-curve is monotone)."""
