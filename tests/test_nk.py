@@ -64,6 +64,13 @@ def test_smoothness_trades_curvature_for_chi2(data, independent):
     assert np.all(smooth.converged)
     assert curvature(smooth) < 0.9 * curvature(independent)
     assert np.sum(smooth.chi2_reduced) > np.sum(independent.chi2_reduced)
+    smoother = jo.fit_nk(seed, sp, "film", smoothness=1.0)
+    assert curvature(smoother) < curvature(smooth) and np.sum(smoother.chi2_reduced) > np.sum(smooth.chi2_reduced)
+    # the three calls ran the same compiled programs: the smoothness and the data are arguments
+    from jaxoptics._fitting._nk import _programs
+
+    prog = _programs(seed, "film", sp.kinds, True, 256, "float64")
+    assert [f._cache_size() for f in prog] == [1, 1, 1]
 
 
 def test_refusals(data):

@@ -23,9 +23,11 @@ not a layer material), as `fit_stack` does its bounds.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -112,8 +114,6 @@ def fit_nk(sample: Sample, spectra: Spectra, layer: str, *, values: ArrayLike | 
     **Returns:** an `NKFit`. Raises `ValueError` before any tracing for a map, an unknown layer, or
     a wavelength with fewer than two data.
     """
-    import optimistix as optx
-
     from ._stack_fit import DEFAULT_SIGMA
 
     if not isinstance(sample, Sample) or not isinstance(spectra, Spectra):
@@ -153,81 +153,111 @@ def fit_nk(sample: Sample, spectra: Spectra, layer: str, *, values: ArrayLike | 
     Wt = jnp.asarray(np.moveaxis(np.where(mask[None], 1 / S_all[:, idx], 0.0), 0, 1), dtype)
     lam = jnp.asarray(uw, dtype)
     angr = jnp.asarray(np.deg2rad(ang[idx]), dtype)
-    is_delta = np.asarray([k == "delta_deg" for k in kinds])[:, None]
-
     if layer == "substrate":
         seed_model = resolved.substrate
-        put = lambda nk: dataclasses.replace(resolved, substrate=Constant(nk[0], nk[1]))
     else:
-        li = sample.layer_names.index(layer)
-        seed_model = resolved.layers[li].material
-        put = lambda nk: dataclasses.replace(resolved, layers=tuple(
-            dataclasses.replace(lay, material=Constant(nk[0], nk[1])) if i == li else lay
-            for i, lay in enumerate(resolved.layers)))
+        seed_model = resolved.layers[sample.layer_names.index(layer)].material
     N0 = np.asarray(seed_model.nk(jnp.asarray(uw / 1000, dtype)))
     U0 = jnp.asarray(_from_nk(N0.real, N0.imag), dtype)  # (W, 2)
-
-    def residuals_nk(x, j_args):
-        """One wavelength's weighted residuals at `x = (n, k)`."""
-        lam_j, ang_j, V_j, W_j = j_args
-        m = put(x).quantities(kinds, jnp.broadcast_to(lam_j, ang_j.shape), ang_j)  # (Q, A)
-        d = m - V_j
-        d = jnp.where(jnp.asarray(is_delta), _wrap_deg(d), d)
-        return (d * W_j).reshape(-1)
-
-    residuals = lambda u, j_args: residuals_nk(_to_nk(u), j_args)
-
-    tol = _solver_tol(dtype)
-    lm: optx.AbstractLeastSquaresSolver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
+    x = jnp.asarray(vals, dtype)
     per = (lam, angr, Vw, Wt)
-    def one(u0, a):
-        sol = optx.least_squares(residuals, lm, u0, a, max_steps=max_steps, throw=False)
-        return sol.value, sol.result == optx.RESULTS.successful
-
-    U, ok = jax.jit(jax.vmap(one))(U0, per)
-    X, err, chi2r, conv = _errors(residuals_nk, jax.vmap(_to_nk)(U), ok, per, counts * Q, sigma_given, dtype)
+    m = jnp.asarray(counts * Q, dtype)
+    prog = _programs(sample, layer, kinds, sigma_given, max_steps, dtype.name)
+    U, ok = prog.solve(x, U0, per)
+    X, err, chi2r, edm, fin = (np.asarray(a) for a in prog.errors(x, jax.vmap(_to_nk)(U), per, m))
+    conv = (np.asarray(ok) | (edm < 1e-6)) & fin
     if smoothness > 0:
         # one problem over all wavelengths from the independent solutions: the data's residuals
         # and the differences between neighbours in units of the median standard errors
-        scale = jnp.asarray([np.median(err[:, 0]), max(float(np.median(err[:, 1])), 1e-12)], dtype)
-
-        def joint(Uf, _):
-            U_ = Uf.reshape(W, 2)
-            r = jax.vmap(residuals)(U_, per).reshape(-1)
-            pen = smoothness * jnp.diff(jax.vmap(_to_nk)(U_), 2, axis=0) / scale[None, :]
-            return jnp.concatenate([r, pen.reshape(-1)])
-
-        def whole(u0):
-            sol = optx.least_squares(joint, lm, u0, None, max_steps=max_steps, throw=False)
-            return sol.value, sol.result == optx.RESULTS.successful
-
-        Uf, ok1 = jax.jit(whole)(U.reshape(-1))
-        X, err, chi2r, conv = _errors(residuals_nk, jax.vmap(_to_nk)(Uf.reshape(W, 2)), jnp.broadcast_to(ok1, (W,)), per,
-                                      counts * Q, sigma_given, dtype, edm_test=False)
+        scale = np.asarray([np.median(err[:, 0]), max(float(np.median(err[:, 1])), 1e-12)])
+        Uf, ok1 = prog.joint(x, U.reshape(-1), per, jnp.asarray(smoothness / scale, dtype))
+        X, err, chi2r, _, fin = (np.asarray(a) for a in prog.errors(x, jax.vmap(_to_nk)(Uf.reshape(W, 2)), per, m))
+        conv = np.broadcast_to(np.asarray(ok1), (W,)) & fin
     return NKFit(layer, uw, X[:, 0], X[:, 1], err[:, 0], err[:, 1], chi2r, conv)
 
 
-def _errors(residuals_nk, X, ok, per, m, sigma_given, dtype, edm_test=True):
-    """`(X, err, chi2_reduced, converged)` per wavelength (NumPy) from the Jacobian in `(n, k)` of
-    each wavelength's own residuals at `X` (`m` data each)."""
-    r = jax.vmap(residuals_nk)(X, per)
-    J = jax.vmap(jax.jacfwd(residuals_nk))(X, per)  # (W, Q A, 2)
-    chi2r = jnp.sum(r * r, axis=-1) / jnp.maximum(jnp.asarray(m, dtype) - 2, 1)
-    JtJ = jnp.einsum("wmi,wmj->wij", J, J)
-    inv = jnp.linalg.pinv(JtJ)
-    cov = inv * (jnp.maximum(chi2r, 1) if sigma_given else chi2r)[:, None, None]
-    err = jnp.sqrt(jnp.abs(jnp.diagonal(cov, axis1=-2, axis2=-1)))
-    conv = np.asarray(ok)
-    if edm_test:
-        # Converged: the solver met its tolerances, or the Gauss-Newton step left at the solution
-        # would lower chi^2 by less than 1e-6 (MINUIT's EDM; at k = 0 with the step pointing to
-        # k < 0, the step in n alone): near the bound k = 0 the solver's own test is met slowly.
+class _Programs(NamedTuple):
+    solve: Callable  # (x, U0, per) -> (U, ok): each wavelength's Levenberg-Marquardt
+    joint: Callable  # (x, U, per, weights) -> (U, ok): all wavelengths with the smoothness penalty
+    errors: Callable  # (x, X, per, m) -> (X, err, chi2_reduced, edm, finite) per wavelength
+
+
+@functools.lru_cache(maxsize=16)
+def _programs(sample, layer, kinds, sigma_given, max_steps, dtype_name) -> _Programs:
+    """The compiled calls of `fit_nk` for one sample, layer, list of quantities and solver
+    setting: the sample's values, the data and the starts are their arguments, so that a later
+    call (other values, other data of the same shapes) runs them without compiling again."""
+    import optimistix as optx
+
+    dtype = jnp.dtype(dtype_name)
+    is_delta = np.asarray([k == "delta_deg" for k in kinds])[:, None]
+    p = len(sample.free())
+    li = None if layer == "substrate" else sample.layer_names.index(layer)
+
+    def put(x, nk):
+        """The sample at values `x` with the layer's index replaced by the constant `nk`."""
+        resolved = sample.with_values([x[i] for i in range(p)])
+        if li is None:
+            return dataclasses.replace(resolved, substrate=Constant(nk[0], nk[1]))
+        return dataclasses.replace(resolved, layers=tuple(
+            dataclasses.replace(lay, material=Constant(nk[0], nk[1])) if i == li else lay
+            for i, lay in enumerate(resolved.layers)))
+
+    def residuals_nk(x, nk, j_args):
+        """One wavelength's weighted residuals at `nk = (n, k)`."""
+        lam_j, ang_j, V_j, W_j = j_args
+        model = put(x, nk).quantities(kinds, jnp.broadcast_to(lam_j, ang_j.shape), ang_j)  # (Q, A)
+        d = model - V_j
+        d = jnp.where(jnp.asarray(is_delta), _wrap_deg(d), d)
+        return (d * W_j).reshape(-1)
+
+    tol = _solver_tol(dtype)
+    lm: optx.AbstractLeastSquaresSolver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
+
+    @jax.jit
+    def solve(x, U0, per):
+        residuals = lambda u, j_args: residuals_nk(x, _to_nk(u), j_args)
+
+        def one(u0, a):
+            sol = optx.least_squares(residuals, lm, u0, a, max_steps=max_steps, throw=False)
+            return sol.value, sol.result == optx.RESULTS.successful
+
+        return jax.vmap(one)(U0, per)
+
+    @jax.jit
+    def joint(x, U, per, weights):
+        W = per[0].shape[0]
+
+        def all_residuals(Uf, _):
+            U_ = Uf.reshape(W, 2)
+            r = jax.vmap(lambda u, a: residuals_nk(x, _to_nk(u), a))(U_, per).reshape(-1)
+            pen = weights[None, :] * jnp.diff(jax.vmap(_to_nk)(U_), 2, axis=0)
+            return jnp.concatenate([r, pen.reshape(-1)])
+
+        sol = optx.least_squares(all_residuals, lm, U, None, max_steps=max_steps, throw=False)
+        return sol.value, sol.result == optx.RESULTS.successful
+
+    @jax.jit
+    def errors(x, X, per, m):
+        """Standard errors, chi^2/dof and MINUIT's EDM per wavelength from the Jacobian in
+        `(n, k)` of each wavelength's own residuals at `X` (`m` data each)."""
+        f = lambda nk, a: residuals_nk(x, nk, a)
+        r = jax.vmap(f)(X, per)
+        J = jax.vmap(jax.jacfwd(f))(X, per)  # (W, Q A, 2)
+        chi2r = jnp.sum(r * r, axis=-1) / jnp.maximum(m - 2, 1)
+        JtJ = jnp.einsum("wmi,wmj->wij", J, J)
+        inv = jnp.linalg.pinv(JtJ)
+        cov = inv * (jnp.maximum(chi2r, 1) if sigma_given else chi2r)[:, None, None]
+        err = jnp.sqrt(jnp.abs(jnp.diagonal(cov, axis1=-2, axis2=-1)))
+        # Converged (`fit_nk`): the solver met its tolerances, or the Gauss-Newton step left at
+        # the solution would lower chi^2 by less than 1e-6 (MINUIT's EDM; at k = 0 with the step
+        # pointing to k < 0, the step in n alone): near the bound k = 0 the solver's own test is
+        # met slowly.
         g = jnp.einsum("wmi,wm->wi", J, r)
         step = -jnp.einsum("wij,wj->wi", inv, g)
         edm = jnp.einsum("wi,wij,wj->w", g, inv, g)
         at_bound = (X[:, 1] <= 1e-10) & (step[:, 1] < 0)
         edm = jnp.where(at_bound, g[:, 0] ** 2 / JtJ[:, 0, 0], edm)
-        conv = conv | np.asarray(edm < 1e-6)
-    conv = conv & np.all(np.isfinite(np.asarray(X)), axis=-1)
-    return np.asarray(X), np.asarray(err), np.asarray(chi2r), conv
+        return X, err, chi2r, edm, jnp.all(jnp.isfinite(X), axis=-1)
 
+    return _Programs(solve, joint, errors)
