@@ -600,6 +600,29 @@ def test_incoherent_derivatives(dtype):
         np.testing.assert_allclose(np.moveaxis(H[k], 0, -1), Hf, atol=1e-7, rtol=0, err_msg=name)
 
 
+@pytest.mark.slow
+def test_incoherent_layer_at_its_critical_angle_has_finite_derivatives_under_any_rounding():
+    """An incoherent layer within a few ulps of its own critical angle (k_z^2 within rounding of
+    0), in float32, compiled with XLA's optimizations off: the rounding then differs from the
+    default compilation's (no contracted multiply-adds), and the root's mask and its input must
+    still agree (they read k_z^2 once: `sqrt_where`). The Jacobian and the Hessian of R and T of
+    both polarizations are finite at each point."""
+    s = np.float32(1.5 * np.sin(0.7))
+    x = np.array([1.45, s, 1.3, 1.52, 120.0, 5e4, 80.0, 550.0, np.cos(0.7)], np.float32)
+    X = np.repeat(x[None], 5, 0)
+    X[:, 8] += np.arange(-2, 3) * np.spacing(X[0, 8])
+
+    def f(x):
+        n = jnp.concatenate([jnp.asarray([1.5], jnp.complex64), x[:4].astype(jnp.complex64)])
+        r = jo.stack(n, x[4:7], x[7], x[8], incoherent=(1,))
+        return jnp.stack([r.R_s, r.T_s, r.R_p, r.T_p])
+
+    jac = jax.jacfwd(f)
+    both = jax.vmap(jax.jacfwd(lambda x: (jac(x), jac(x)), has_aux=True))
+    H, J = jax.jit(both, compiler_options={"xla_backend_optimization_level": 0})(jnp.asarray(X))
+    assert np.all(np.isfinite(np.asarray(J))) and np.all(np.isfinite(np.asarray(H)))
+
+
 # ---- API, dtype, bad input -----------------------------------------------------------------------
 
 

@@ -416,7 +416,9 @@ def _flux(E, H):
 def _incoherent(bounds, ki, nn, dd, k0, kz_sq):
     """Coherent groups between the incoherent layers `bounds[1:-1]` (indices among all media),
     summed in intensity. Arrays have the media (dd: inner layers) on the leading axis."""
-    kz = {j: decaying_sqrt(kz_sq(nn[j])) for j in bounds[1:]}
+    # k_z^2 stored once before its root (`materialize`): the root's mask and its input then read
+    # the same bits where the layer is at its own critical angle (k_z^2 within rounding of 0)
+    kz = {j: decaying_sqrt(_materialize_parts(kz_sq(nn[j]))) for j in bounds[1:]}
     kz[0] = ki
     N = len(bounds)
     fwd, bwd = [], []
