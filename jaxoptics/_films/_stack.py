@@ -347,15 +347,25 @@ def _stack(n_first, nn, n_last, dd, wavelength, cos_i, inc):
     kz_exit = _materialize_parts(decaying_sqrt(kz_sq(media.last)))
     if not inc:
         s, p = _group(ki, n0c, kz_exit, media.last, media.inner, dd, k0, kz_sq, real_incident=True)
-        return _finish(valid, s.R, p.R, s.T, p.T, list(s.A), list(p.A), (s.r, p.r, s.t, p.t), p.r * jnp.conj(s.r))
+        return _finish(valid, s.R, p.R, s.T, p.T, s.A, p.A, (s.r, p.r, s.t, p.t), p.r * jnp.conj(s.r))
     Rs, Rp, Ts, Tp, As, Ap, rp_rs = _incoherent((0,) + inc + (media.L - 1,), ki, media, dd, k0, kz_sq)
     return _finish(valid, Rs, Rp, Ts, Tp, As, Ap, None, rp_rs)
 
 
 def _finish(valid, Rs, Rp, Ts, Tp, As, Ap, amps, rp_rs):
+    """The outputs, NaN where an input is out of the domain. `As`, `Ap`: the absorption per inner
+    layer, layer axis first (an array, or a list of the layers' arrays); masked as one array and
+    moved to the last axis in one transpose (layer by layer, XLA's CPU backend writes each
+    layer's masked copy, then stacks them: two passes over every layer's values)."""
     nan = lambda x: jnp.where(valid, x, jnp.nan)  # (and broadcast to the batch shape)
-    A_s = jnp.stack([nan(x) for x in As], axis=-1) if As else jnp.zeros(Rs.shape + (0,), Rs.dtype)
-    A_p = jnp.stack([nan(x) for x in Ap], axis=-1) if Ap else jnp.zeros(Rs.shape + (0,), Rs.dtype)
+
+    def per_layer(A):
+        if not len(A):
+            return jnp.zeros(Rs.shape + (0,), Rs.dtype)
+        A = jnp.stack(jnp.broadcast_arrays(*A)) if isinstance(A, list) else A
+        return jnp.moveaxis(jnp.where(valid[None], A, jnp.nan), 0, -1)
+
+    A_s, A_p = per_layer(As), per_layer(Ap)
     amps = tuple(nan(x) for x in amps) if amps is not None else (None,) * 4
     return StackResult(nan(Rs), nan(Rp), nan(Ts), nan(Tp), A_s, A_p, *amps, nan(rp_rs))
 
