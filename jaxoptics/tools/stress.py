@@ -212,16 +212,28 @@ def _grad_counts(f, args, complex_out):
     import jax.numpy as jnp
 
     g = (lambda *x: jnp.abs(f(*x)) ** 2) if complex_out else f
-    out, vjp = jax.vjp(g, *args)
-    rev = vjp(jnp.ones_like(out))
-    bad_rev = int(sum(np.sum(~np.isfinite(np.asarray(r))) for r in rev))
-    bad_fwd = 0
+
+    @jax.jit  # both modes in one compiled program (called eagerly, each is traced and compiled)
+    def counts(*args):
+        out, vjp = jax.vjp(g, *args)
+        bad_rev = sum(jnp.sum(~jnp.isfinite(r)) for r in vjp(jnp.ones_like(out)))
+        return bad_rev, sum(jnp.sum(~jnp.isfinite(d)) for d in _along_each_input(g, args))
+
+    bad_rev, bad_fwd = counts(*args)
+    return int(bad_rev), int(bad_fwd)
+
+
+def _along_each_input(f, args):
+    """The forward-mode derivatives of `f` along each of its arguments in turn (the others held)."""
+    import jax
+    import jax.numpy as jnp
+
+    out = []
     for j in range(len(args)):
         t = [jnp.zeros_like(a) for a in args]
         t[j] = jnp.ones_like(args[j])
-        _, d = jax.jvp(g, tuple(args), tuple(t))
-        bad_fwd += int(np.sum(~np.isfinite(np.asarray(d))))
-    return bad_rev, bad_fwd
+        out.append(jax.jvp(f, tuple(args), tuple(t))[1])
+    return out
 
 
 def stress_scalar(dtype, n_random, progress=None, mp_samples=2000):
@@ -359,15 +371,10 @@ def stress_vector(dtype, n_random, progress=None, mp_samples=400):
             tir = np.asarray(jax.jit(lambda i, n, a, b, m=method: jo.refract(i, n, a, b, method=m))(*args).tir)
         name = method if method == "reflect" else f"refract[{method}]"
         row = dict(kernel=name, dtype=np.dtype(dtype).name, n=int(c.size), nan_inf_values=int(np.sum(~np.isfinite(t))))
-        g = jax.jit(jax.grad(lambda *x: jnp.sum(f(*x) * weights), argnums=(0, 1, 2, 3)))(*args)
-        row["nan_inf_grad_rev"] = int(sum(np.sum(~np.isfinite(np.asarray(x))) for x in g))
-        bad_fwd = 0
-        for j in range(4):
-            tang = [jnp.zeros_like(x) for x in args]
-            tang[j] = jnp.ones_like(args[j])
-            _, d = jax.jvp(f, args, tuple(tang))
-            bad_fwd += int(np.sum(~np.isfinite(np.asarray(d))))
-        row["nan_inf_grad_fwd"] = bad_fwd
+        bad = jax.jit(lambda *x: (sum(jnp.sum(~jnp.isfinite(g)) for g in jax.grad(
+            lambda *x: jnp.sum(f(*x) * weights), argnums=(0, 1, 2, 3))(*x)),
+            sum(jnp.sum(~jnp.isfinite(d)) for d in _along_each_input(f, x))))(*args)
+        row["nan_inf_grad_rev"], row["nan_inf_grad_fwd"] = (int(b) for b in bad)
         t64, i64, n64 = t.astype(np.float64), i.astype(np.float64), n.astype(np.float64)
         row["worst_abs_norm_minus_1"] = float(np.max(np.abs(np.linalg.norm(t64, axis=1) - np.linalg.norm(i64, axis=1))))
         if method != "reflect":
