@@ -655,6 +655,20 @@ def test_jit_vmap_and_broadcasting():
     np.testing.assert_allclose(np.asarray(mapped.R_s)[:, :, 0].T, np.asarray(res.R_s), rtol=1e-14)
 
 
+def test_absorption_per_layer_compiles_to_loops_that_do_not_grow_with_the_layers():
+    """The absorption of every inner layer (`A_s`, `A_p`) is masked and laid out as one array: the
+    compiled program's fused loops are about as many for 24 layers as for 3 (the prefix sum of
+    the attenuations adds a few, logarithmically). Masking each layer on its own and stacking
+    them costs two loops per layer, and the compile time grows with them."""
+
+    def fused_loops(L, N=64):
+        args = (jnp.full((N, L + 2), 1.5 + 0.01j), jnp.full((L,), 100.0), jnp.full((N,), 500.0), jnp.full((N,), 0.8))
+        fn = jax.jit(lambda *a: (lambda r: (r.A_s, r.A_p))(jo.stack(*a)))
+        return fn.lower(*args).compile().as_text().count(" fusion(")
+
+    assert fused_loops(24) - fused_loops(3) < 24 - 3
+
+
 def test_an_eager_call_is_one_compiled_program_and_a_traced_one_is_inlined():
     """Called eagerly, `stack` and `ellipsometry` run the kernel as one compiled program (a first
     call at a new shape compiles that program and a few operations of the checks, not each of the
