@@ -209,12 +209,6 @@ def _unrot(z):
     return jax.lax.complex(-jnp.imag(z), jnp.real(z))
 
 
-def _inverse(z):
-    """1 / z for a complex z as conj(z) / |z|^2, one real division (XLA's complex division guards
-    against overflow with branches and two divisions; |z|^2 of a squared index cannot overflow)."""
-    return _rmul(1 / _abs2(z), jnp.conj(z))
-
-
 def _rmul(x, z):
     """x z for real x and complex z, as two real multiplications."""
     return jax.lax.complex(x * jnp.real(z), x * jnp.imag(z))
@@ -268,7 +262,7 @@ def _fields_scan(nn, dd, k0, ki, n0, v, residuals):
         kz = _decaying_root(q)
         phase = _rmul(a, kz)
         c, s = _layer_cs(phase, a)
-        w2 = _apply(c, s, q * s, (q * _inverse(nsq)) * s, nsq * s, (Es, Ts, Ep, Tp))
+        w2 = _apply(c, s, q * s, (q * (1 / nsq)) * s, nsq * s, (Es, Ts, Ep, Tp))
         fl = lambda E, T: jnp.imag(E * jnp.conj(T))
         ys = (fl(w2[0], w2[1]), fl(w2[2], w2[3]), jnp.imag(phase))
         if residuals:  # for the tangent scan: the field entering the layer from behind, c and s
@@ -315,7 +309,7 @@ def _tangents(primals, tangents, phases, residuals, *, recorded: bool):
         a = k0 * dj
         da = (k0 * ddj + dj * dk0).astype(c.dtype)
         nsq = nj * nj
-        inv = _inverse(nsq)
+        inv = 1 / nsq
         q = _kt_squared(ki, n0, nj)[0]
         gam = _ds_dq(c, s, q, a)
         dnsq = 2 * nj * dnj
