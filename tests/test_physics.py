@@ -114,10 +114,15 @@ def test_refract_invariants(dtype, method):
     # TIR exactly where eta1 sin_i > eta2
     margin = np.abs(e1 * sin_i - e2) > 1e3 * eps
     np.testing.assert_array_equal(tir[margin], (e1 * sin_i > e2)[margin])
-    # independent of the normal's orientation (bitwise)
+    # independent of the normal's orientation (bitwise), eagerly and in a compiled program (where
+    # XLA fuses and contracts multiply-adds: what a renderer runs), for `refract` and `interface`
     t2, tir2 = jo.refract(i, -n, e1, e2, method=method)
     np.testing.assert_array_equal(np.asarray(t2, np.float64), t)
     np.testing.assert_array_equal(np.asarray(tir2), tir)
+    spec = jo.InterfaceSpec(outputs=("t", "tir", "r", "R", "T"), method=method)
+    compiled = jax.jit(lambda *a: (jo.refract(*a, method=method), jo.interface(*a, spec=spec)))
+    for a, b in zip(jax.tree_util.tree_leaves(compiled(i, n, e1, e2)), jax.tree_util.tree_leaves(compiled(i, -n, e1, e2))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 @pytest.mark.parametrize("dtype", DTYPES)

@@ -135,7 +135,7 @@ def interface(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batch 3"],
     else:
         d = materialize(_dot(i, n))  # once, so that every loop sees the same cosine
     flip = d > 0
-    nf = jnp.where(flip[..., None], -n, n)
+    nf = materialize(jnp.where(flip[..., None], -n, n))  # stored once, as in `refract` (see there)
     c = jnp.where(flip, d, -d)
     if spec.check_inputs:
         c = jnp.where(c > 1, 1, c)
