@@ -92,6 +92,47 @@ def _real_dtype(x):
     return jnp.finfo(x.dtype).dtype if jnp.iscomplexobj(x) else x.dtype
 
 
+def test_an_eager_kernel_call_is_one_compiled_program_and_a_traced_one_is_inlined():
+    """Called eagerly, each kernel runs as one compiled program: its first call at a new shape
+    compiles exactly one program (not each of its operations), a second call at that shape
+    compiles nothing, and inside a caller's trace it is inlined (no nested call in the jaxpr).
+    Python ints and lists are taken as before: `eta1=1` as a weakly typed float, a list as an
+    array; a bool is still refused."""
+    rng = np.random.default_rng(8)
+    N = 11  # a shape no other test uses, so that nothing is compiled already
+    i = rng.normal(size=(N, 3))
+    i /= np.linalg.norm(i, axis=-1, keepdims=True)
+    n = np.tile([0.0, 0.0, 1.0], (N, 1))
+    c, a, b = np.abs(i[:, 2]), rng.uniform(1, 2, N), rng.uniform(1, 2, N)
+    calls = {"reflect": lambda s: jo.reflect(i * s, n), "refract": lambda s: jo.refract(i * s, n, a, b),
+             "refract[bec]": lambda s: jo.refract(i * s, n, a, b, method="bec"),
+             "interface": lambda s: jo.interface(i * s, n, a, b), "critical_angle": lambda s: jo.critical_angle(a * s, b),
+             "brewster_angle": lambda s: jo.brewster_angle(a * s, b)}
+    for name in ("fresnel", "fresnel_sp", "fresnel_rt", "fresnel_amplitudes", "schlick", "schlick_tir"):
+        calls[name] = lambda s, f=getattr(jo, name): f(c * s, a, b)
+    compiles = []
+    listener = lambda event, duration, **kw: compiles.append(event) if event.endswith("backend_compile_duration") else None
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        for name, call in calls.items():
+            del compiles[:]
+            jax.block_until_ready(call(1.0))
+            assert len(compiles) == 1, (name, len(compiles))
+            del compiles[:]
+            jax.block_until_ready(call(0.999))
+            assert compiles == [], name
+            eqns = jax.make_jaxpr(call)(1.0).jaxpr.eqns
+            nested = {str(e.params.get("name")) for e in eqns if e.primitive.name in ("pjit", "jit")}
+            assert name.split("[")[0] not in nested, (name, nested)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert float(jo.fresnel(0.5, 1, 2)) == float(jo.fresnel(0.5, 1.0, 2.0))
+    np.testing.assert_array_equal(np.asarray(jo.reflect([0.6, 0.0, -0.8], [0.0, 0.0, 1.0])),
+                                  np.asarray(jo.reflect(np.array([0.6, 0.0, -0.8]), np.array([0.0, 0.0, 1.0]))))
+    with pytest.raises(ValueError, match="boolean"):
+        jo.fresnel(True, 1.0, 1.5)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(KERNEL_CALLS))
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

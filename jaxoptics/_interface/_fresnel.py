@@ -45,6 +45,7 @@ import jax.numpy as jnp
 
 from .._core import _validate as V
 from .._core._numerics import _abs2, _positive_finite, unpolarized
+from .._core._program import program
 from .._core._result import Unpacks, result
 from ._fresnel_terms import (
     _abs_cos,
@@ -96,6 +97,7 @@ class FresnelAmplitudes(Unpacks):
         return unpolarized(self.R_s, self.R_p)
 
 
+@program()
 def fresnel(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],
             eta2: Inexact[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
     r"""Unpolarized Fresnel reflectance ``R = (R_s + R_p) / 2`` of a smooth interface.
@@ -127,6 +129,7 @@ def fresnel(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"]
     return unpolarized(R_s, R_p)
 
 
+@program()
 def fresnel_sp(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],
                eta2: Inexact[ArrayLike, "*#batch"]) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
     r"""Fresnel reflectances for s (TE) and p (TM) polarization, `(R_s, R_p)`.
@@ -144,6 +147,7 @@ def fresnel_sp(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batc
     return R_s, R_p
 
 
+@program()
 def fresnel_rt(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],
                eta2: Inexact[ArrayLike, "*#batch"]) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
     r"""Unpolarized reflectance and transmittance `(R, T)` computed together.
@@ -165,6 +169,7 @@ def fresnel_rt(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batc
     return _rt_two_loops(cos_i, eta1, eta2)
 
 
+@program()
 def fresnel_amplitudes(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],
                        eta2: Inexact[ArrayLike, "*#batch"]) -> FresnelAmplitudes:
     r"""Complex Fresnel amplitude coefficients `r_s, r_p, t_s, t_p`, with phase.
@@ -195,6 +200,7 @@ def _schlick_from_r0(c, r0):
     return r0 + (1 - r0) * (x2 * x2 * x)
 
 
+@program()
 def schlick(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],
             eta2: Inexact[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
     r"""Schlick's approximation `R0 + (1 - R0)(1 - cos_i)^5`, `R0 = ((eta1 - eta2)/(eta1 + eta2))^2`.
@@ -225,6 +231,7 @@ def schlick(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"]
     return jnp.where(valid, _schlick_from_r0(c, r0), jnp.nan)
 
 
+@program()
 def schlick_tir(cos_i: Float[ArrayLike, "*batch"], eta1: Float[ArrayLike, "*#batch"],
                 eta2: Float[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
     r"""Schlick's approximation made aware of total internal reflection (de Greve 2006, eq. 30).

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 
 from .._core import _validate as V
 from .._core._numerics import _positive_finite, materialize, sqrt_where
+from .._core._program import program
 from .._core._result import Unpacks, result
 from ._fresnel_terms import _kt_squared
 
@@ -178,6 +179,7 @@ def _valid_vectors(i, n):
     return (ii > 0) & (nn > 0) & jnp.isfinite(ii + nn)
 
 
+@program()
 def reflect(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batch 3"]) -> Float[Array, "*batch 3"]:
     r"""Mirror direction `r = i - 2 (i . n) n`.
 
@@ -197,6 +199,7 @@ def reflect(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batch 3"]) -
     return jnp.where(_valid_vectors(i, n)[..., None], r, jnp.nan)
 
 
+@program(static_argnames=("method",))
 def refract(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batch 3"], eta1: Float[ArrayLike, "*#batch"],
             eta2: Float[ArrayLike, "*#batch"], *, method: str = "degreve", oliveira_c: float = 1.0) -> Refraction:
     r"""Refracted direction by Snell's law, with the total-internal-reflection mask.
@@ -328,6 +331,7 @@ def _refracted(method, i, n, nf, c, ki, kt, diff, cr, eta1, eta2, oliveira_c):
     return t / jnp.sqrt(jnp.maximum(tt, jnp.asarray(jnp.finfo(tt.dtype).tiny, tt.dtype)))  # tt > 0 unless i == c n_f
 
 
+@program()
 def critical_angle(eta1: Float[ArrayLike, "*batch"], eta2: Float[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
     r"""Critical angle `asin(eta2 / eta1)` in radians, for light going from `eta1` into `eta2`.
 
@@ -352,6 +356,7 @@ def critical_angle(eta1: Float[ArrayLike, "*batch"], eta2: Float[ArrayLike, "*#b
     return jnp.where(valid, theta, jnp.nan).astype(dt)
 
 
+@program()
 def brewster_angle(eta1: Float[ArrayLike, "*batch"], eta2: Float[ArrayLike, "*#batch"]) -> Float[Array, "*batch"]:
     r"""Brewster's angle `atan(eta2 / eta1)` in radians, where `R_p = 0`.
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from .._core import _validate as V
 from .._core._numerics import _own_loop, _positive_finite, materialize, unpolarized
+from .._core._program import program
 from .._core._result import Unpacks, result
 from .._films._stack import stack
 from .._interface._fresnel import _schlick_from_r0
@@ -101,6 +102,7 @@ class Interaction(Unpacks):
 DEFAULT_SPEC = InterfaceSpec()
 
 
+@program(static_argnames=("spec",))
 def interface(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batch 3"], eta1: Float[ArrayLike, "*#batch"],
               eta2: Inexact[ArrayLike, "*#batch"], *, spec: InterfaceSpec = DEFAULT_SPEC) -> Interaction:
     r"""Everything a renderer needs at a hit, in one pass, specialized by `spec`.
