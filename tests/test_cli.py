@@ -116,6 +116,7 @@ print("DEFAULTS OK")
 """
 
 
+@pytest.mark.slow
 def test_kernels_under_xla_default_emitters():
     """The suite compiles with XLA's classic CPU emitters (`conftest.py`); users run XLA's defaults.
     Here, in a process with the defaults: stacks with and without an incoherent layer against

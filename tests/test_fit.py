@@ -138,6 +138,7 @@ def test_recovers_index_from_tmm_data(eta2, pol):
     assert abs(float(r.eta) - eta2) < 1e-7 * eta2
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("eta1,eta2", [(1.5, 1.0), (1.5, 1.2), (1.333, 1.0), (2.4, 1.5), (1.5, 1.45)])
 def test_internal_reflection_with_tir_plateau(eta1, eta2):
     R = tmm_curve(eta1, eta2, THETA, "unpolarized")

@@ -50,6 +50,7 @@ def _R(material, d, wl, theta, n0=1.0, ns=3.88 + 0.02j):
     return np.array([float(res.R_s[0]), float(res.R_p[0])])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("theta_deg", [0.0, 65.0])
 def test_staircase_converges_to_the_continuous_profile(theta_deg):
     """A 400 nm film whose index rises linearly from 1.7 to 2.0 (and k from 0 to 0.01): the
@@ -108,6 +109,7 @@ def test_composition_grading_is_effective_medium_sublayers():
     np.testing.assert_allclose(np.asarray(graded.quantities(q, wl, th)), np.asarray(explicit.quantities(q, wl, th)), rtol=0, atol=1e-10)
 
 
+@pytest.mark.slow
 def test_gradients_in_every_profile_parameter():
     """The derivatives of R in the top and bottom indices, the exponent, the tabulated weights, the
     bottom fraction and the thickness are finite and equal central differences."""

@@ -36,6 +36,7 @@ def _brute(dwl=None, dang=None, scale=None, weights=None):
     return np.stack([(Rs - Rp) / tot, 2 * X.real / tot, -2 * X.imag / tot])
 
 
+@pytest.mark.slow
 def test_an_ideal_instrument_and_offsets_are_the_plain_model():
     plain = np.asarray(jo.Sample([FILM], SUB).fixed().quantities(KINDS, WL, ANG))
     np.testing.assert_array_equal(_q(jo.Instrument()), plain)
@@ -50,6 +51,7 @@ def _gauss(fwhm, n=2001):
     return z * fwhm / (2 * np.sqrt(2 * np.log(2))), w / w.sum()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("effect", ["bandwidth", "spread", "nonuniformity", "all"])
 def test_averages_equal_brute_force_sums_of_intensities_and_depolarize(effect):
     inst = {"bandwidth": jo.Instrument(bandwidth_nm=6.0, nodes=9), "spread": jo.Instrument(angle_spread_deg=2.0, nodes=9),
@@ -81,6 +83,7 @@ def test_averages_equal_brute_force_sums_of_intensities_and_depolarize(effect):
     np.testing.assert_allclose(got[3], psi, atol=1e-10)
 
 
+@pytest.mark.slow
 def test_backside_reflections_are_an_incoherent_slab_times_the_fraction_collected():
     glass = 1.52
     slab = np.asarray(jo.Sample([FILM, jo.Layer(glass, 1e6, incoherent=True)], 1.0).fixed().stack(WL, ANG).R_s)

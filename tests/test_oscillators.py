@@ -138,6 +138,7 @@ def test_poles_are_the_limits_of_lorentz_and_drude_terms_and_sellmeier_ir_is_pol
 BSPL = dict(coefficients=(0.5, 2.0, 3.5, 3.0, 1.2, 0.4, 0.0, 0.8), start=1.5, spacing=0.3, eps_inf=1.3)
 
 
+@pytest.mark.slow
 def test_bspline_eps2_is_scipys_spline_and_eps1_its_kramers_kronig_transform():
     from scipy.interpolate import BSpline as SciPyBSpline
 
@@ -162,6 +163,7 @@ def test_bspline_eps2_is_scipys_spline_and_eps1_its_kramers_kronig_transform():
     np.testing.assert_allclose(flat.imag, 2.0, rtol=1e-14)
 
 
+@pytest.mark.slow
 def test_bspline_derivatives_are_finite_at_the_knots():
     @jax.jit
     def n_of(E, c2, h):
@@ -181,6 +183,7 @@ def test_bspline_derivatives_are_finite_at_the_knots():
         jo.BSpline(coefficients=(1.0,), start=1.0, spacing=0.0)
 
 
+@pytest.mark.slow
 def test_genosc_sums_its_oscillators_and_names_their_parameters():
     osc = (jo.Gaussian(A=1.0, E0=5.5, Br=1.0), jo.TaucLorentz(A=80.0, E0=4.0, C=2.0, Eg=1.5, eps_inf=0.0),
            jo.Poles(uv_amp=30.0, uv_energy=10.0), jo.CodyLorentz(), jo.BSpline(**BSPL), jo.Drude(2.0, 0.1))

@@ -669,6 +669,7 @@ def test_absorption_per_layer_compiles_to_loops_that_do_not_grow_with_the_layers
     assert fused_loops(24) - fused_loops(3) < 24 - 3
 
 
+@pytest.mark.slow
 def test_an_eager_call_is_one_compiled_program_and_a_traced_one_is_inlined():
     """Called eagerly, `stack` and `ellipsometry` run the kernel as one compiled program (a first
     call at a new shape compiles that program and a few operations of the checks, not each of the

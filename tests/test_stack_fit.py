@@ -577,6 +577,7 @@ def test_plot_draws_the_model_between_the_measurements():
                                                   np.full(xf.size, 632.8), xf)[0], atol=1e-9)
 
 
+@pytest.mark.slow
 def test_plot_stack_fit_figure_sites_and_bad_arguments():
     """`plot_stack_fit` on a map: the site chosen by position or label, residuals over sigma on
     request, and clear errors for a bad site, a bad residual kind, or normalized residuals without
