@@ -96,8 +96,9 @@ def test_an_eager_kernel_call_is_one_compiled_program_and_a_traced_one_is_inline
     """Called eagerly, each kernel runs as one compiled program: its first call at a new shape
     compiles exactly one program (not each of its operations), a second call at that shape
     compiles nothing, and inside a caller's trace it is inlined (no nested call in the jaxpr).
-    Python ints and lists are taken as before: `eta1=1` as a weakly typed float, a list as an
-    array; a bool is still refused."""
+    (`scene_interface` checks the films' values first, then runs `_scene_program`.) Python ints
+    and lists are taken as before: `eta1=1` as a weakly typed float, a list as an array; a bool
+    is still refused."""
     rng = np.random.default_rng(8)
     N = 11  # a shape no other test uses, so that nothing is compiled already
     i = rng.normal(size=(N, 3))
@@ -107,7 +108,9 @@ def test_an_eager_kernel_call_is_one_compiled_program_and_a_traced_one_is_inline
     calls = {"reflect": lambda s: jo.reflect(i * s, n), "refract": lambda s: jo.refract(i * s, n, a, b),
              "refract[bec]": lambda s: jo.refract(i * s, n, a, b, method="bec"),
              "interface": lambda s: jo.interface(i * s, n, a, b), "critical_angle": lambda s: jo.critical_angle(a * s, b),
-             "brewster_angle": lambda s: jo.brewster_angle(a * s, b)}
+             "brewster_angle": lambda s: jo.brewster_angle(a * s, b),
+             "_scene_program": lambda s: jo.scene_interface(i * s, n, np.arange(N) % 2, a, b,
+                                                            scene=jo.SceneSpec(kinds=("dielectric", "mirror")))}
     for name in ("fresnel", "fresnel_sp", "fresnel_rt", "fresnel_amplitudes", "schlick", "schlick_tir"):
         calls[name] = lambda s, f=getattr(jo, name): f(c * s, a, b)
     compiles = []

@@ -306,6 +306,16 @@ def scene_interface(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batc
             if not isinstance(arr, jax.core.Tracer):  # on the parts this process holds
                 V.first_bad(np.atleast_1d(arr) if np.ndim(arr) == 0 else arr, lambda v, _: bad(v),
                             lambda idx, v: f"{name}{idx} = {v!r}: must be {what}")
+    if isinstance(kind, (int, list, tuple)):  # (an int stays an int: see `program`)
+        kind = np.asarray(kind)
+    scene = scene._replace(kinds=kinds, wavelengths=wls)  # hashable: it keys the program
+    return _scene_program(i, n, kind, eta1, eta2, scene=scene, film_eta=film_eta, film_d=film_d)
+
+
+@program(static_argnames=("scene",))
+def _scene_program(i, n, kind, eta1, eta2, *, scene, film_eta, film_d):
+    """`scene_interface` after its value checks, as one program (see `program`)."""
+    kinds, wls = scene.kinds, scene.wavelengths
     kind_arr = jnp.asarray(kind)
     if not jnp.issubdtype(kind_arr.dtype, jnp.integer):
         raise ValueError(f"kind must be an integer array (an index into scene.kinds), got dtype {kind_arr.dtype}")
