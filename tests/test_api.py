@@ -134,6 +134,12 @@ def test_an_eager_kernel_call_is_one_compiled_program_and_a_traced_one_is_inline
                                   np.asarray(jo.reflect(np.array([0.6, 0.0, -0.8]), np.array([0.0, 0.0, 1.0]))))
     with pytest.raises(ValueError, match="boolean"):
         jo.fresnel(True, 1.0, 1.5)
+    # a specification with a list where a tuple is documented works as it did before the kernels
+    # were compiled programs (static arguments must be hashable)
+    listed = jo.interface(i[0], n[0], 1.0, 1.5, spec=jo.InterfaceSpec(outputs=["t", "R"]))
+    tupled = jo.interface(i[0], n[0], 1.0, 1.5, spec=jo.InterfaceSpec(outputs=("t", "R")))
+    np.testing.assert_array_equal(np.asarray(listed.R), np.asarray(tupled.R))
+    np.testing.assert_array_equal(np.asarray(listed.t), np.asarray(tupled.t))
 
 
 @pytest.mark.slow

@@ -14,7 +14,8 @@ while the program is traced and raise the same `ValueError` before anything is c
 of argument are converted before the call, so that they are checked as they were given rather
 than as `jit` would convert them: a Python `int` (`eta1=1`, accepted and weakly typed like a
 `float`) becomes a `float`, and a list or tuple becomes a NumPy array. Arguments named in
-`static_argnames` (a method's name, a specification) are passed as they are and key the program.
+`static_argnames` (a method's name, a specification) key the program; a `NamedTuple`
+specification's list fields are made tuples for that.
 """
 
 from __future__ import annotations
@@ -40,6 +41,15 @@ def _as_given(x: Any) -> Any:
     return x
 
 
+def _hashable(x: Any) -> Any:
+    """A static argument as a key of the program: a `NamedTuple` specification (`InterfaceSpec`)
+    with its list fields as tuples (`outputs=["t", "R"]` is accepted as it always was)."""
+    if isinstance(x, tuple) and hasattr(x, "_replace"):
+        lists = {k: tuple(v) for k, v in zip(x._fields, x) if isinstance(v, list)}  # type: ignore[attr-defined]
+        return x._replace(**lists) if lists else x
+    return x
+
+
 def program(*, static_argnames: tuple[str, ...] = ()) -> Callable[[F], F]:
     """Decorator: run the kernel as one compiled program when called eagerly and inline it when
     traced (see the module docstring)."""
@@ -51,8 +61,8 @@ def program(*, static_argnames: tuple[str, ...] = ()) -> Callable[[F], F]:
 
         @functools.wraps(fun)
         def call(*args: Any, **kwargs: Any) -> Any:
-            args = tuple(a if params[j] in static else _as_given(a) for j, a in enumerate(args))
-            kwargs = {k: v if k in static else _as_given(v) for k, v in kwargs.items()}
+            args = tuple(_hashable(a) if params[j] in static else _as_given(a) for j, a in enumerate(args))
+            kwargs = {k: _hashable(v) if k in static else _as_given(v) for k, v in kwargs.items()}
             return jitted(*args, **kwargs)
 
         return call  # type: ignore[return-value]
