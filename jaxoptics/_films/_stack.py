@@ -37,7 +37,6 @@ R. M. A. Azzam, N. M. Bashara, *Ellipsometry and Polarized Light*.
 
 from __future__ import annotations
 
-import functools
 import math
 from typing import TYPE_CHECKING
 
@@ -47,6 +46,7 @@ import numpy as np
 
 from .._core import _validate as V
 from .._core._numerics import _abs2, _materialize_parts, decaying_sqrt, sqrt_where, unpolarized
+from .._core._program import program
 from .._core._result import Unpacks, result
 from ._elementary import _atan2
 from ._layers import _group, _incoherent, _KzSq
@@ -227,7 +227,7 @@ def stack(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batch L-2"]
     return _stack_program(n, d, wavelength, cos_i, inc=inc, block=_block_size())
 
 
-@functools.partial(jax.jit, static_argnames=("inc", "block"), inline=True)
+@program(static_argnames=("inc", "block"))
 def _stack_program(n, d, wavelength, cos_i, *, inc, block):
     """`stack` after its checks, as one compiled program (as `jax.numpy`'s functions are): an
     eager call compiles it once per shape, dtype and layout instead of dispatching each of the
@@ -404,7 +404,7 @@ def ellipsometry(n: Inexact[ArrayLike, "*#batch L"], d: Float[ArrayLike, "*#batc
     return _ellipsometry_program(n, d, wavelength, cos_i, inc=inc, block=_block_size())
 
 
-@functools.partial(jax.jit, static_argnames=("inc", "block"), inline=True)
+@program(static_argnames=("inc", "block"))
 def _ellipsometry_program(n, d, wavelength, cos_i, *, inc, block):
     """`ellipsometry` after its checks, one compiled program (see `_stack_program`)."""
     res = _stack_program(n, d, wavelength, cos_i, inc=inc, block=block)
