@@ -66,14 +66,16 @@ def _fields(fit):
     return {f.name: getattr(fit, f.name) for f in dataclasses.fields(fit)}
 
 
-def _checked_fit_eta(theta, R, *, sigma=None, init=None, **kw):
+def _checked_fit_eta(theta, R, *, sigma=None, init=None, eta1=1.0, **kw):
     """`fit_eta` called eagerly and under `jax.jit`: the two agree (the fit and its follow-up solves
     are one JAX program, whatever the caller does with it). `jax.vmap` is compared in
-    `test_fit_result_under_jit_and_vmap`."""
-    if any(isinstance(x, jax.core.Tracer) for x in (theta, R, sigma, init)):  # a test's own jit
-        return _fit_eta(theta, R, sigma=sigma, init=init, **kw)
-    eager = _fit_eta(theta, R, sigma=sigma, init=init, **kw)  # raises on bad data, before tracing
-    _assert_same(_jit_fit_eta(theta, R, sigma, init, tuple(sorted(kw.items()))), _fields(eager), "jit")
+    `test_fit_result_under_jit_and_vmap`. Under `jit` the index of the first medium is an argument
+    (one program for every `eta1`)."""
+    if any(isinstance(x, jax.core.Tracer) for x in (theta, R, sigma, init, eta1)):  # a test's own jit
+        return _fit_eta(theta, R, sigma=sigma, init=init, eta1=eta1, **kw)
+    eager = _fit_eta(theta, R, sigma=sigma, init=init, eta1=eta1, **kw)  # raises on bad data, before tracing
+    kw = tuple(sorted(kw.items()))
+    _assert_same(_jit_fit_eta(theta, R, sigma, init, np.asarray(eta1, np.result_type(R, theta)), kw), _fields(eager), "jit")
     return eager
 
 
@@ -81,10 +83,10 @@ def _checked_fit_eta(theta, R, *, sigma=None, init=None, **kw):
 # caller may choose them): the comparison is of the same fit eagerly and under the caller's `jit`,
 # to the tolerances above, and these programs compile in well under half the time.
 @functools.partial(jax.jit, static_argnames="kw", compiler_options=QUICK_COMPILE)
-def _jit_fit_eta(theta, R, sigma, init, kw):
+def _jit_fit_eta(theta, R, sigma, init, eta1, kw):
     """One jitted function for the whole file (the options static), so that cases with the same
     shapes and options share one compilation."""
-    return _fields(_fit_eta(theta, R, sigma=sigma, init=init, **dict(kw)))
+    return _fields(_fit_eta(theta, R, sigma=sigma, init=init, eta1=eta1, **dict(kw)))
 
 
 def _checked_fit_dispersion(wavelength_um, theta, R, **kw):
