@@ -75,7 +75,7 @@ def _checked_fit_eta(theta, R, *, sigma=None, init=None, eta1=1.0, **kw):
         return _fit_eta(theta, R, sigma=sigma, init=init, eta1=eta1, **kw)
     eager = _fit_eta(theta, R, sigma=sigma, init=init, eta1=eta1, **kw)  # raises on bad data, before tracing
     kw = tuple(sorted(kw.items()))
-    _assert_same(_jit_fit_eta(theta, R, sigma, init, np.asarray(eta1, np.result_type(R, theta)), kw), _fields(eager), "jit")
+    _assert_same(_jit_fit_eta(theta, R, sigma, init, np.asarray(eta1, np.asarray(R).dtype), kw), _fields(eager), "jit")
     return eager
 
 
