@@ -9,10 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import tmm
+from helpers import quick_jit
 
 import jaxoptics as jo
 from jaxoptics.__main__ import main  # in-process calls pass --no-cache: the compilation cache is process-wide
-from jaxoptics._runtime._options import QUICK_COMPILE
 
 THETA = np.deg2rad(np.linspace(0, 85, 90))
 
@@ -82,7 +82,7 @@ def _checked_fit_eta(theta, R, *, sigma=None, init=None, eta1=1.0, **kw):
 # The callers' programs are compiled with the package's quick options (`QUICK_COMPILE`, as a
 # caller may choose them): the comparison is of the same fit eagerly and under the caller's `jit`,
 # to the tolerances above, and these programs compile in well under half the time.
-@functools.partial(jax.jit, static_argnames="kw", compiler_options=QUICK_COMPILE)
+@functools.partial(quick_jit, static_argnames="kw")
 def _jit_fit_eta(theta, R, sigma, init, eta1, kw):
     """One jitted function for the whole file (the options static), so that cases with the same
     shapes and options share one compilation."""
@@ -107,7 +107,7 @@ def _dispersion_summary(fit, lam):
             "residual_rms": fit.residual_rms}
 
 
-@functools.partial(jax.jit, static_argnames="kw", compiler_options=QUICK_COMPILE)
+@functools.partial(quick_jit, static_argnames="kw")
 def _jit_fit_dispersion(lam, theta, R, sigma, init, kw):
     return _dispersion_summary(_fit_dispersion(lam, theta, R, sigma=sigma, init=init, **dict(kw)), lam)
 

@@ -1,24 +1,16 @@
 """Derivatives of fitted indices with respect to the data (implicit function theorem), checked
 against central finite differences of the whole fit, started anew at each perturbed data set."""
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
+from helpers import quick_jit as _jit
 
 import jaxoptics as jo
-from jaxoptics._runtime._options import QUICK_COMPILE
 
 TH = np.deg2rad(np.linspace(5, 80, 40))
-
-# The derivatives' programs are compiled with the package's quick options (`QUICK_COMPILE`, as a
-# caller may choose them, and as the fits themselves are for problems this small): what is checked
-# is the derivative's value against finite differences, to tolerances far above any rounding the
-# compiler's choices change, and these programs compile in about two thirds of the time.
-_jit = functools.partial(jax.jit, compiler_options=QUICK_COMPILE)
 
 
 # central-difference weights (offset in steps, weight) of second and fourth order

@@ -2,15 +2,13 @@
 they reduce to it, and against brute-force averages: many coherent calculations of the plain
 sample summed in intensity (`R_s`, `R_p`, `r_p conj(r_s)`) over the spread of conditions."""
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import quick_jit
 
 import jaxoptics as jo
-from jaxoptics._runtime._options import QUICK_COMPILE
 
 KINDS = ("N", "C", "S", "psi_deg", "delta_deg", "R")
 FILM = jo.Layer(jo.Cauchy(A=1.46, B=0.004), 800.0, name="ox")
@@ -124,9 +122,6 @@ def test_instrument_parameters_are_free_parameters_and_a_fit_recovers_an_angle_o
 def test_gradients_in_every_effect_are_finite_and_match_differences():
     s = jo.Sample([jo.Layer(FILM.material, jo.Free(800.0, 0.0, 2000.0), name="ox")], 1.52,
                   instrument=jo.Instrument(*(jo.Free(v, 0.0, 1.0 if i == 5 else 10.0) for i, v in enumerate([0.5, 1.0, 3.0, 1.0, 0.02, 0.4]))))
-    # both programs with the quick options small fits compile with (`QUICK_COMPILE`): the gradient
-    # is compared with differences far above the rounding the compiler's choices change
-    quick_jit = functools.partial(jax.jit, compiler_options=QUICK_COMPILE)
     f_of = lambda x: jnp.sum(s.with_values(list(x)).quantities(KINDS, WL, ANG))
     f = quick_jit(f_of)
     x0 = jnp.asarray([800.0, 0.5, 1.0, 3.0, 1.0, 0.02, 0.4])

@@ -9,10 +9,9 @@ import mpmath as mp
 import numpy as np
 import pytest
 import tmm
-from helpers import stack_ref
+from helpers import quick_jit, stack_ref
 
 import jaxoptics as jo
-from jaxoptics._runtime._options import QUICK_COMPILE
 
 # ---- oracles -------------------------------------------------------------------------------------
 
@@ -806,11 +805,8 @@ def test_large_batches_in_blocks_agree_with_tmm(monkeypatch, inc):
     def run(block):
         monkeypatch.setattr(S, "_BLOCK", block)
         loss = lambda n, d, w: jnp.sum(jo.stack(n, d, w, args[3], incoherent=inc).R * jnp.linspace(0.5, 1.5, W)[None])
-        # a new function: traced anew, with this block size; values and gradients in one program,
-        # compiled with the quick options small fits use (`QUICK_COMPILE`): what is checked is the
-        # blocks' bookkeeping, to tolerances far above the rounding the compiler's choices change
-        return jax.jit(lambda *a: (jo.stack(*a, incoherent=inc), jax.grad(loss, argnums=(0, 1, 2))(*a[:3])),
-                       compiler_options=QUICK_COMPILE)(*args)
+        # a new function: traced anew, with this block size; values and gradients in one program
+        return quick_jit(lambda *a: (jo.stack(*a, incoherent=inc), jax.grad(loss, argnums=(0, 1, 2))(*a[:3])))(*args)
 
     res, grads = run(7)
     compared = 0

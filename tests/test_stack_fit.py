@@ -11,9 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import tmm
+from helpers import quick_jit
 
 import jaxoptics as jo
-from jaxoptics._runtime._options import QUICK_COMPILE
 
 WL = np.linspace(300.0, 1000.0, 100)
 ANGLES = (65.0, 70.0, 75.0)
@@ -762,11 +762,8 @@ def test_jacobian_through_the_stack_inputs_equals_jacfwd(case):
     jax.config.update("jax_enable_x64", True)
     x = jnp.asarray(x, jnp.float64)
     wl_j, ang_j = jnp.asarray(wl), jnp.asarray(ang)
-    quick_jit = functools.partial(jax.jit, compiler_options=QUICK_COMPILE)
     m, J = quick_jit(_model_and_jacobian(sample, kinds, wl_j, ang_j))(x)
-    # the references compiled once each (the finite differences call the model 32 times), all four
-    # programs with the quick options small fits compile with (`QUICK_COMPILE`): what is compared
-    # is far above the rounding the compiler's choices change, and they compile in less time
+    # the references compiled once each (the finite differences call the model 32 times)
     model_of = lambda x: sample.with_values([x[i] for i in range(x.shape[0])]).quantities(kinds, wl_j, ang_j, flat=True)
     model = quick_jit(model_of)
     J_ref = quick_jit(jax.jacfwd(model_of))(x)
