@@ -5,12 +5,14 @@ from, `eta2` the medium it enters (complex `n + ik`, `k >= 0`, where allowed); a
 vectors `(..., 3)`; dtype follows the inputs.
 
 This file is the whole public API; the code lives in private subpackages, one per concern
-(`_core`, `_runtime`, `_interface`, `_films`, `_render`, `_io`, `_fitting`; the design page has
+(`_core`, `_runtime`, `_interface`, `_films`, `_render`, `_io`, `_fitting`, `_design`; the design page has
 the map and the direction of imports between them).
 
 The fitting names (`fit_eta`, `fit_eta_sharded`, `FitResult`, `OneColumnLeastSquares`,
 `fit_dispersion`, `DispersionFit`, `fit_stack`, `StackFit`) and the figures (`plot_fit`,
-`plot_dispersion_fit`, `plot_stack_fit`, `plot_stack_map`) are imported on first use.
+`plot_dispersion_fit`, `plot_stack_fit`, `plot_stack_map`) and the coating-design names
+(`Target`, `design`, `Design`, `merit`, `target_values`, `thickness_errors`, `ThicknessErrors`, `ErrorAnalysis`)
+are imported on first use.
 optimistix, equinox and lineax load when a fit traces a program (not when `fit_eta` or
 `fit_stack` loads its compiled program from the cache); a program that only calls the kernels
 does not load them, and matplotlib loads when a figure is drawn.
@@ -126,6 +128,14 @@ _LAZY = {
     "plot_dispersion_fit": "._fitting._plot",
     "plot_stack_fit": "._fitting._plot",
     "plot_stack_map": "._fitting._plot",
+    "Target": "._design._targets",
+    "design": "._design._design",
+    "Design": "._design._design",
+    "merit": "._design._design",
+    "thickness_errors": "._design._design",
+    "target_values": "._design._design",
+    "ThicknessErrors": "._design._errors",
+    "ErrorAnalysis": "._design._errors",
 }
 if _typing.TYPE_CHECKING:
     from ._fitting._index import fit_eta as fit_eta
@@ -149,6 +159,14 @@ if _typing.TYPE_CHECKING:
     from ._fitting._plot import plot_fit as plot_fit
     from ._fitting._plot import plot_stack_fit as plot_stack_fit
     from ._fitting._plot import plot_stack_map as plot_stack_map
+    from ._design._targets import Target as Target
+    from ._design._design import Design as Design
+    from ._design._design import design as design
+    from ._design._design import merit as merit
+    from ._design._design import target_values as target_values
+    from ._design._design import thickness_errors as thickness_errors
+    from ._design._errors import ErrorAnalysis as ErrorAnalysis
+    from ._design._errors import ThicknessErrors as ThicknessErrors
 
 
 def __getattr__(name):

@@ -1,0 +1,8 @@
+"""Coating design: targets and the merit function (`_targets`), the design as a padded stack of
+layers whose materials are indices into a list (`_layers`), batched least-squares refinement of
+many starts (`_refine`), needle synthesis (`_needle`), Monte-Carlo yield, per-layer sensitivity
+and robust design under thickness errors (`_errors`), and the public `design` with its result
+`Design` (`_design`).
+
+May import: `_core`, `_runtime`, `_films`.
+"""

@@ -1,0 +1,251 @@
+"""`design`: refine a coating's thicknesses to meet `Target`s from many starts at once, and
+optionally grow it by needle synthesis; `merit` of a sample; `thickness_errors`, its yield.
+
+The method:
+
+1. **Refinement** (every call): the free thicknesses of the sample are the variables, each within
+   its `Free` bounds and `[min_thickness_nm, max_thickness_nm]`. `starts` designs (the sample's
+   own values first, then random thicknesses uniform within the bounds; where a layer has no
+   upper bound, up to the larger of twice its value and half the longest target wavelength) are
+   refined together by Levenberg-Marquardt (optimistix) on the merit's residuals, in one compiled
+   call; the design of lowest merit is kept.
+2. **Needle synthesis** (`needle=True`): the needle function of every candidate material at every
+   sampled depth (`jaxoptics._design._needle`) in one gradient pass; a needle of the best material
+   at the best depth (the most negative derivative) is inserted, a quarter of the depth spacing
+   thick; the design is refined with lower bounds of zero; free layers thinner than
+   `min_thickness_nm` (at least 0.1 nm) are removed and neighbours of one material merged; and
+   again, until no needle lowers the merit (a needle derivative below `1e-4 MF^2` per spacing),
+   a round lowers it by less than `1e-3` of itself, the next needle would exceed `max_layers`
+   slots, or the total physical thickness reaches `max_total_nm`. A last refinement keeps every
+   free layer within `[min_thickness_nm, max_thickness_nm]`. Every round runs the same two
+   compiled programs: the design lives in `max_layers` slots, unused ones of zero thickness.
+3. **Robust design** (`robust=ThicknessErrors(...)`): the refinements minimize the mean of `MF^2`
+   over that set of random thickness errors (the same draws throughout) instead of `MF^2`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import numpy as np
+
+from .._films._dispersion import Constant
+from .._films._sample import Sample
+from . import _errors, _layers, _needle, _refine, _targets
+from ._targets import Target
+
+_THINNEST = 0.1  # nm: free layers thinner than this are removed between needle rounds at least
+_NEEDLE_T = 0.25  # a new needle's thickness, in needle spacings
+_MIN_GAIN = 1e-3  # a round must lower the merit by this fraction of itself
+_MIN_SLOPE = 1e-4  # a needle's predicted decrease of MF^2 per spacing, relative to MF^2
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Design:
+    """Result of `design`.
+
+    **Fields:** `sample`, the designed `Sample` (every thickness fixed at its designed value);
+    `names` and `values`, the layers' thickness parameters (`layer1.thickness_nm`, ...) and their
+    values in nm, top layer first; `merit`, the design's merit (`MF`, 1 where every target is met
+    to its tolerance on average); `history`, the merit after the refinement of the starts and
+    after each needle round; `merits` `(starts,)`, the merit each start refined to; `layers`, the
+    number of layers; `materials`, each layer's material."""
+
+    sample: Sample
+    names: list
+    values: np.ndarray
+    merit: float
+    history: np.ndarray
+    merits: np.ndarray
+    layers: int
+    materials: list
+
+    def __getitem__(self, name):
+        return float(self.values[self.names.index(name)])
+
+    def table(self) -> str:
+        rows = [f"{self.layers} layers, total {float(np.sum(self.values)):.1f} nm, merit {self.merit:.4g}"]
+        rows += [f"{n:24s} {v:10.3f}  {_label(m)}" for n, v, m in zip(self.names, self.values, self.materials)]
+        return "\n".join(rows)
+
+
+def _label(m) -> str:
+    """A material's short name for tables: its `name`, or its index where it is a constant."""
+    if getattr(m, "name", None):
+        return str(m.name)
+    if isinstance(m, Constant):
+        return f"n = {m.n:g}" + (f" + {m.k:g}i" if m.k else "")
+    return type(m).__name__
+
+
+def _dtype():
+    return np.float64 if jax.config.read("jax_enable_x64") else np.float32
+
+
+def _check_int(v, what, low):
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+        raise ValueError(f"design: {what} must be an int >= {low}, got {v!r}")
+    return int(v)
+
+
+def _starts(s: _layers.Slots, starts, wl_max, rng) -> np.ndarray:
+    """`(B, S)` start thicknesses (module docstring, step 1)."""
+    free = np.flatnonzero(s.free)
+    if isinstance(starts, (int, np.integer)) and not isinstance(starts, bool):
+        B = _check_int(starts, "starts", 1)
+        D = np.repeat(s.d[None], B, axis=0)
+        hi = np.where(np.isfinite(s.hi), s.hi, np.maximum(2 * s.d, wl_max / 2))
+        D[1:, free] = rng.uniform(s.lo[free], hi[free], (B - 1, free.size))
+        return D
+    given = np.asarray(starts, dtype=float)
+    if given.ndim != 2 or given.shape[1] != free.size:
+        raise ValueError(f"design: starts as an array must be (starts, {free.size}) thicknesses of the free "
+                         f"layers, got shape {given.shape}")
+    if not np.all(np.isfinite(given) & (given >= s.lo[free]) & (given <= s.hi[free])):
+        raise ValueError("design: every start thickness must be finite and within its layer's bounds")
+    D = np.repeat(s.d[None], given.shape[0], axis=0)
+    D[:, free] = given
+    return D
+
+
+def design(sample: Sample, targets: Sequence[Target], *, starts: Any = 1, needle: bool = False, materials: Sequence[Any] | None = None,
+           max_layers: int | None = None, min_thickness_nm: float = 0.0, max_thickness_nm: float | None = None,
+           max_total_nm: float | None = None, max_rounds: int = 40, max_steps: int = 200,
+           robust: _errors.ThicknessErrors | None = None, seed: int = 0, progress: bool = False) -> Design:
+    """Design the free thicknesses of `sample` to meet `targets` (see the module docstring for the
+    method).
+
+    **Arguments:**
+
+    - `sample`: a `Sample`; its free (`Free`) thicknesses are designed, its fixed ones kept; every
+      index parameter must be fixed.
+    - `targets`: a list of `Target`.
+    - `starts`: the number of starts refined together (the sample's values and random ones), or a
+      `(starts, free layers)` array of start thicknesses.
+    - `needle`, `materials`: needle synthesis with these candidate materials (`Dispersion`s,
+      numbers, or built-in names such as `"SiO2"`, `"Si3N4"`, `"Al2O3"`); with `needle=False`,
+      `materials` is ignored.
+    - `max_layers`: the layer budget (default: the sample's layers; with `needle`, 40).
+    - `min_thickness_nm`, `max_thickness_nm`: bounds of every designable layer (inserted ones too).
+    - `max_total_nm`: needle synthesis inserts no needle once the total thickness reaches it.
+    - `max_rounds`, `max_steps`: needle rounds; Levenberg-Marquardt steps per refinement.
+    - `robust`: `ThicknessErrors` whose mean merit is minimized instead of the merit.
+    - `seed`: of the random starts. `progress`: print a line per needle round.
+
+    **Returns:** a `Design`.
+    """
+    lay, arrays = _targets.layout(targets)
+    dtype = _dtype()
+    if min_thickness_nm < 0 or not math.isfinite(min_thickness_nm):
+        raise ValueError(f"design: min_thickness_nm must be finite and >= 0, got {min_thickness_nm}")
+    if max_thickness_nm is not None and not max_thickness_nm > min_thickness_nm:
+        raise ValueError(f"design: max_thickness_nm={max_thickness_nm} must exceed min_thickness_nm={min_thickness_nm}")
+    cands = [_layers.as_material(m, "design materials") for m in (materials or [])]
+    if needle and not cands:
+        raise ValueError("design: needle=True needs candidate materials (materials=[...])")
+    n_layers = len(sample.layers) if isinstance(sample, Sample) else 0
+    budget = max_layers if max_layers is not None else (max(40, n_layers + 2) if needle else None)
+    if budget is not None:
+        _check_int(budget, "max_layers", 1)
+    max_steps = _check_int(max_steps, "max_steps", 1)
+    # during needle rounds, layers may thin to zero (and are removed); the last refinement applies min_thickness_nm
+    s = _layers.from_sample(sample, cands if needle else [], budget, 0.0 if needle else min_thickness_nm, max_thickness_nm)
+    if not s.free.any() and not needle:
+        raise ValueError("design: the sample has no free thickness to design (make one Free)")
+    wl_all = np.concatenate([arrays["wl_plain"], arrays["wl_disp"]])
+    errors = None if robust is None else _errors.robust_draws(robust, s.size, dtype)
+    problem = _refine.make_problem(s, lay, arrays, dtype, errors)
+    rng = np.random.default_rng(seed)
+    D, mf2, _ = _refine.refine(problem, s, _starts(s, starts, float(wl_all.max()), rng), max_steps)
+    merits = np.sqrt(mf2)
+    best = int(np.nanargmin(mf2))
+    s = s.replace(d=D[best])
+    history = [float(merits[best])]
+    if needle:
+        cand_ids = [_layers.Slots.index(s, c) for c in cands]
+        s, history = _synthesize(problem, s, cand_ids, history, float(wl_all.min()) * _needle.NEEDLE_SPACING,
+                                 max(min_thickness_nm, _THINNEST), max_total_nm, max_rounds, max_steps, progress)
+        # the last refinement within every layer's bounds
+        lo = np.where(s.free, np.maximum(s.lo, min_thickness_nm), s.lo)
+        hi = np.where(s.free, s.hi if max_thickness_nm is None else np.minimum(s.hi, max_thickness_nm), s.hi)
+        s = s.replace(lo=lo, hi=hi)
+        D, mf2, _ = _refine.refine(problem, s, s.d[None], max_steps)
+        s = s.replace(d=D[0])
+        history.append(float(np.sqrt(mf2[0])))
+    return _result(s, sample, history, merits)
+
+
+def _synthesize(problem, s, cand_ids, history, spacing, thinnest, max_total, max_rounds, max_steps, progress):
+    """The needle rounds (module docstring, step 2): the final slots and the merit history."""
+    mf = history[-1]
+    for rnd in range(max_rounds):
+        if s.used + 2 > s.size or (max_total is not None and float(np.sum(s.d)) >= max_total):
+            break
+        z, P, ok, mf2 = _needle.needle_function(problem, s, cand_ids, spacing)
+        P = np.where(ok, P, np.inf)
+        k, c = np.unravel_index(int(np.argmin(P)), P.shape)
+        if not P[k, c] * spacing < -_MIN_SLOPE * mf2:
+            break
+        t = _NEEDLE_T * spacing
+        trial = _layers.insert(s, float(z[k]), cand_ids[c], t, 0.0, math.inf)
+        D, m2, _ = _refine.refine(problem, trial, trial.d[None], max_steps)
+        trial = _layers.cleanup(trial.replace(d=D[0]), thinnest)
+        D, m2, _ = _refine.refine(problem, trial, trial.d[None], max_steps)
+        new = float(np.sqrt(m2[0]))
+        if progress:
+            print(f"needle round {rnd + 1}: {trial.used} layers, merit {new:.4g}", flush=True)
+        if not new < mf * (1 - _MIN_GAIN):
+            break
+        s, mf = trial.replace(d=D[0]), new
+        history.append(mf)
+    return s, history
+
+
+def _result(s, sample, history, merits) -> Design:
+    names = [f"layer{j + 1}.thickness_nm" for j in range(s.used)]
+    return Design(s.to_sample(), names, np.asarray(s.d[:s.used], float), history[-1], np.asarray(history),
+                  np.asarray(merits), s.used, [s.materials[int(i)] for i in s.ids[:s.used]])
+
+
+def merit(sample: Sample | Design, targets: Sequence[Target]) -> float:
+    """The merit `MF` of `sample` (its `Free` parameters at their values) for `targets`."""
+    lay, arrays = _targets.layout(targets)
+    s = _layers.from_sample(_fixed(sample), [], None, 0.0, None)
+    problem = _refine.make_problem(s, lay, arrays, _dtype())
+    return float(np.sqrt(_refine.run(_refine.merit2_program, problem, jax.numpy.asarray(s.ids), s.d[None].astype(problem.dtype))[0]))
+
+
+def target_values(sample: Sample | Design, targets: Sequence[Target]) -> list[np.ndarray]:
+    """What `sample` (or a `Design`'s sample) gives for each target: one array per target, at its
+    wavelengths, in its quantity's unit (for plots and reports)."""
+    lay, arrays = _targets.layout(targets)
+    s = _layers.from_sample(_fixed(sample), [], None, 0.0, None)
+    problem = _refine.make_problem(s, lay, arrays, _dtype())
+    q = np.asarray(_refine.run(_refine.values_program, problem, jax.numpy.asarray(s.ids), jax.numpy.asarray(s.d, problem.dtype)))
+    return [q[a:b] for a, b in _targets.spans(lay)]
+
+
+def _fixed(sample):
+    if isinstance(sample, Design):
+        return sample.sample
+    if not isinstance(sample, Sample):
+        raise ValueError(f"expected a Sample or a Design, got {type(sample).__name__}")
+    return sample
+
+
+def thickness_errors(sample: Sample | Design, targets: Sequence[Target], *, errors: _errors.ThicknessErrors | None = None,
+                     threshold: float = 1.0) -> _errors.ErrorAnalysis:
+    """The merit of `sample` (or a `Design`'s sample) under random thickness errors (default
+    `ThicknessErrors()`: 1 % relative, normal, 100 draws): every drawn design evaluated in one
+    compiled call. **Returns:** an `ErrorAnalysis`: the merits, the yield (fraction of draws
+    with merit at most `threshold`) and each layer's sensitivity."""
+    errors = errors or _errors.ThicknessErrors()
+    lay, arrays = _targets.layout(targets)
+    s = _layers.from_sample(_fixed(sample), [], None, 0.0, None)
+    problem = _refine.make_problem(s, lay, arrays, _dtype())
+    m2 = lambda ids, D: _refine.run(_refine.merit2_program, problem, ids, D, starts=D.shape[0])
+    return _errors.analyse(m2, jax.numpy.asarray(s.ids), s.d.astype(problem.dtype), s.used, errors, threshold)

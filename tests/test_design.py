@@ -1,0 +1,192 @@
+"""Coating design (`jo.design`, `jo.Target`, needle synthesis, thickness errors) against
+independent oracles: the quarter-wave mirror's closed form, tmm's reflectance of textbook
+anti-reflection coatings, finite differences of the merit (needle function) and of the phase
+(group delay and its dispersion)."""
+
+import math
+
+import jax
+import numpy as np
+import pytest
+import tmm
+
+import jaxoptics as jo
+
+NS = 1.52  # glass
+
+
+def _tmm_R(ns_layers, d, wl, angle_deg=0.0, pol="avg"):
+    n_list = [1.0] + list(ns_layers) + [NS]
+    d_list = [np.inf] + list(d) + [np.inf]
+    th = math.radians(angle_deg)
+    R = lambda p: tmm.coh_tmm(p, n_list, d_list, th, wl)["R"]
+    return {"s": R("s"), "p": R("p"), "avg": (R("s") + R("p")) / 2}[pol]
+
+
+def test_quarter_wave_mirror_refines_to_the_quarter_wave_stack_and_its_analytic_peak():
+    """Maximum R at 600 nm from random starts: the refined stack is the quarter-wave stack and its R
+    the closed form `((1 - Y) / (1 + Y))^2`, `Y = (nH/nL)^(2m) nH^2 / ns` (Macleod, ch. 7)."""
+    nH, nL, wl0 = 2.3, 1.46, 600.0
+    layers = tuple(jo.Layer(nH if j % 2 == 0 else nL, jo.Free(100.0, 40.0, 140.0)) for j in range(5))
+    target = jo.Target("R", wl0, 1.0, tolerance=1e-3)
+    d = jo.design(jo.Sample(layers, NS), [target], starts=8, seed=2)
+    quarter = [wl0 / (4 * (nH if j % 2 == 0 else nL)) for j in range(5)]
+    np.testing.assert_allclose(d.values, quarter, rtol=1e-5)
+    Y = (nH / nL) ** 4 * nH**2 / NS
+    R_peak = ((1 - Y) / (1 + Y)) ** 2
+    assert abs((1 - 1e-3 * d.merit) - R_peak) < 1e-10
+    assert d.merits.shape == (8,) and d.merit == pytest.approx(np.min(d.merits))
+    assert d.layers == 5 and d.names[0] == "layer1.thickness_nm" and d["layer2.thickness_nm"] == pytest.approx(quarter[1], rel=1e-5)
+
+
+@pytest.mark.parametrize("textbook", ["quarter-quarter", "quarter-half-quarter"])
+def test_anti_reflection_designs_agree_with_tmm_and_improve_on_the_textbook(textbook):
+    """Mean reflectance over 400-700 nm on glass: the merit of the textbook design equals tmm's,
+    refinement lowers it, and tmm's reflectance of the refined design gives the refined merit."""
+    wl0 = 550.0
+    ns = {"quarter-quarter": (1.38, 1.70), "quarter-half-quarter": (1.38, 2.10, 1.62)}[textbook]
+    quarters = {"quarter-quarter": (1, 1), "quarter-half-quarter": (1, 2, 1)}[textbook]
+    d0 = [q * wl0 / (4 * n) for q, n in zip(quarters, ns)]
+    wl = np.linspace(400.0, 700.0, 16)
+    targets = [jo.Target("R", wl, 0.0, tolerance=0.005)]
+    rms = lambda d: math.sqrt(np.mean([(_tmm_R(ns, d, w) / 0.005) ** 2 for w in wl]))
+    start = jo.Sample(tuple(jo.Layer(n, jo.Free(t, 1.0, 400.0)) for n, t in zip(ns, d0)), NS)
+    assert jo.merit(start, targets) == pytest.approx(rms(d0), rel=1e-10)
+    d = jo.design(start, targets)
+    assert d.merit < 0.9 * rms(d0)
+    assert d.merit == pytest.approx(rms(d.values), rel=1e-10)
+
+
+def test_needle_function_equals_finite_differences_of_the_merit():
+    """The derivative of MF^2 per nm of a needle inserted at a depth (inside a layer, at an
+    interface, at the substrate) equals the one-sided second-order difference quotient of the
+    merit of the design with a thin layer inserted there."""
+    from jaxoptics._design import _layers, _needle, _refine, _targets
+
+    sample = jo.Sample((jo.Layer(1.46, 120.0), jo.Layer(2.1, 60.0)), NS)
+    targets = [jo.Target("R", np.linspace(450.0, 650.0, 9), 0.0, tolerance=0.01),
+               jo.Target("T", 520.0, 0.99, angle_deg=30.0, polarization="p", kind=">=", tolerance=0.01)]
+    lay, arrays = _targets.layout(targets)
+    mats = [_layers.as_material(1.46, ""), _layers.as_material(2.1, ""), _layers.as_material(1.8, "")]
+    s = _layers.from_sample(sample, mats, 2, 0.0, None)
+    problem = _refine.make_problem(s, lay, arrays, np.float64)
+    z, P, ok, mf2 = _needle.needle_function(problem, s, [0, 1, 2], 9.0)
+    assert mf2 == pytest.approx(jo.merit(sample, targets) ** 2, rel=1e-12)
+    h = 1e-3
+    for near in (40.0, 120.0, 180.0):
+        k = int(np.argmin(np.abs(z - near)))
+        depth = float(z[k])
+        for c, n in enumerate((1.46, 2.1, 1.8)):
+            if not ok[k, c]:
+                continue
+
+            def f(t):
+                edges = [0.0, 120.0, 180.0]
+                layers, ns = [], [1.46, 2.1]
+                for j in range(2):
+                    a, b = edges[j], edges[j + 1]
+                    if a < depth < b:
+                        layers += [jo.Layer(ns[j], depth - a), jo.Layer(n, t), jo.Layer(ns[j], b - depth)]
+                    else:
+                        layers += [jo.Layer(n, t)] if depth == a and j == 1 else []
+                        layers.append(jo.Layer(ns[j], b - a))
+                layers += [jo.Layer(n, t)] if depth == 180.0 else []
+                return jo.merit(jo.Sample(tuple(layers), NS), targets) ** 2
+
+            fd = (-3 * f(0.0) + 4 * f(h) - f(2 * h)) / (2 * h)
+            assert P[k, c] == pytest.approx(fd, rel=1e-5, abs=1e-6 * abs(mf2)), (depth, n)
+    # inside the 1.46 layer a 1.46 needle changes nothing: not a candidate
+    assert not ok[int(np.argmin(np.abs(z - 40.0))), 0]
+
+
+def test_group_delay_and_its_dispersion_equal_finite_differences_of_the_phase():
+    """GD = d(arg r)/d(omega) and GDD = dGD/d(omega), material dispersion included, against
+    central differences of the computed phase (s and p at 45 degrees, reflection and transmission)."""
+    si3n4 = jo.material("Si3N4")
+    sample = jo.Sample(tuple(jo.Layer(si3n4 if j % 2 else 1.46, 70.0 + 9.0 * j) for j in range(6)), NS)
+    wl = np.array([520.0, 610.0, 700.0])
+    c = 299.792458
+    omega = 2 * np.pi * c / wl
+    dw = 1e-4
+    cases = [(side, pol) for side in "rt" for pol in "sp"]
+    targets = [jo.Target(f"{q}_{side}", wl, 0.0, angle_deg=45.0, polarization=pol) for side, pol in cases for q in ("GD", "GDD")]
+    targets += [jo.Target(f"phase_{side}", 2 * np.pi * c / w, 0.0, angle_deg=45.0, polarization=pol)
+                for side, pol in cases for w in (omega - dw, omega, omega + dw)]
+    values = jo.target_values(sample, targets)
+    got = dict(zip([(q, side, pol) for side, pol in cases for q in ("GD", "GDD")], values))
+    phases = iter(values[len(got):])
+    for side, pol in cases:
+        pm, p0, pp = np.unwrap(np.radians(np.stack([next(phases) for _ in range(3)])), axis=0)
+        np.testing.assert_allclose(got["GD", side, pol], (pp - pm) / (2 * dw), rtol=1e-6)
+        np.testing.assert_allclose(got["GDD", side, pol], (pp - 2 * p0 + pm) / dw**2, rtol=2e-4, atol=1e-3)
+    # a delay is positive: reflection from 6 layers of a few hundred nm is delayed by about a femtosecond
+    assert np.all(got["GD", "t", "s"] > 0)
+
+
+def test_needle_synthesis_lowers_the_merit_within_the_constraints():
+    """From one thick low-index layer on glass, needle rounds with two candidates lower the
+    broadband anti-reflection merit several times over; the result keeps the minimum thickness,
+    the layer budget, and has no two neighbours of one material."""
+    start = jo.Sample((jo.Layer(1.46, jo.Free(500.0, 0.0)),), NS)
+    targets = [jo.Target("R", np.linspace(450.0, 650.0, 11), 0.0, tolerance=0.01)]
+    d = jo.design(start, targets, needle=True, materials=[1.46, 2.1], max_layers=10, min_thickness_nm=5.0)
+    assert d.history[0] == pytest.approx(jo.merit(start, targets), rel=1e-6) or d.history[0] < jo.merit(start, targets)
+    assert np.all(np.diff(d.history[:-1]) < 0)
+    assert d.merit < d.history[0] / 3
+    assert 3 <= d.layers <= 10 and np.all(d.values >= 5.0 - 1e-9)
+    ns = [float(m.n) for m in d.materials]
+    assert all(a != b for a, b in zip(ns, ns[1:]))
+    assert d.merit == pytest.approx(jo.merit(d.sample, targets), rel=1e-9)
+
+
+def test_thickness_errors_yield_and_robust_design():
+    """Each drawn design's merit is the merit of that perturbed sample computed on its own; the
+    yield counts them; a robust refinement from the nominal optimum lowers the mean merit squared
+    over the same draws."""
+    wl = np.linspace(420.0, 680.0, 9)
+    targets = [jo.Target("R", wl, 0.0, tolerance=0.005)]
+    start = jo.Sample((jo.Layer(1.38, jo.Free(100.0, 1.0, 300.0)), jo.Layer(2.1, jo.Free(130.0, 1.0, 300.0)),
+                       jo.Layer(1.62, jo.Free(85.0, 1.0, 300.0))), NS)
+    nominal = jo.design(start, targets)
+    errors = jo.ThicknessErrors("relative", 0.02, draws=24, seed=3)
+    ea = jo.thickness_errors(nominal, targets, errors=errors, threshold=2.0)
+    rel, _ = errors.sample(3)
+    for i in (0, 7):
+        pert = jo.Sample(tuple(jo.Layer(m, float(t) * (1 + e)) for m, t, e in zip((1.38, 2.1, 1.62), nominal.values, rel[i])), NS)
+        assert ea.merits[i] == pytest.approx(jo.merit(pert, targets), rel=1e-10)
+    assert ea.yield_fraction == np.mean(ea.merits <= 2.0) and ea.merit == pytest.approx(nominal.merit, rel=1e-10)
+    assert ea.sensitivity.shape == (3,) and np.all(ea.sensitivity > 0)
+    again = jo.Sample(tuple(jo.Layer(m, jo.Free(float(t), 1.0, 300.0)) for m, t in zip((1.38, 2.1, 1.62), nominal.values)), NS)
+    robust = jo.design(again, targets, robust=errors)
+    ea_r = jo.thickness_errors(robust, targets, errors=errors, threshold=2.0)
+    assert ea_r.expected_merit < ea.expected_merit
+    assert robust.merit >= nominal.merit * (1 - 1e-9)
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda: jo.Target("X", 500.0, 0.0), "quantity 'X'"),
+    (lambda: jo.Target("phase_r", 500.0, 0.0), "needs polarization 's' or 'p'"),
+    (lambda: jo.Target("R", [500.0, -1.0], 0.0), "wavelengths must be finite and > 0"),
+    (lambda: jo.Target("R", [500.0, 600.0], [0.0, 0.1, 0.2]), "value has 3 values for 2 wavelengths"),
+    (lambda: jo.Target("R", 500.0, 0.0, tolerance=0.0), "tolerance must be > 0"),
+    (lambda: jo.Target("R", 500.0, 0.0, angle_deg=90.0), "angle_deg must lie in [0, 90)"),
+    (lambda: jo.design(jo.Sample((jo.Layer(jo.Cauchy(A=jo.Free(1.5)), jo.Free(10.0)),), NS), [jo.Target("R", 500.0, 0.0)]),
+     "layer1.A is Free"),
+    (lambda: jo.design(jo.Sample((jo.Layer(1.5, 10.0),), NS), [jo.Target("R", 500.0, 0.0)]), "no free thickness"),
+    (lambda: jo.design(jo.Sample((jo.Layer(1.5, jo.Free(10.0)),), NS), [jo.Target("R", 500.0, 0.0)], needle=True),
+     "needs candidate materials"),
+    (lambda: jo.design(jo.Sample((jo.Layer(1.5, jo.Free(10.0)),), NS), [jo.Target("R", 500.0, 0.0)], needle=True,
+                       materials=["unobtainium"]), "unknown material 'unobtainium'"),
+    (lambda: jo.ThicknessErrors("relative", -0.01), "size must be a number > 0"),
+])
+def test_bad_design_input_is_named(make, message):
+    with pytest.raises(ValueError, match=None) as e:
+        make()
+    assert message in str(e.value)
+
+
+def test_design_runs_in_float32():
+    """With float64 off, the design computes in float32 and still finds the quarter wave."""
+    with jax.enable_x64(False):
+        d = jo.design(jo.Sample((jo.Layer(1.38, jo.Free(80.0, 10.0, 200.0)),), NS), [jo.Target("R", 550.0, 0.0)])
+    assert d.values[0] == pytest.approx(550.0 / (4 * 1.38), rel=1e-3)
