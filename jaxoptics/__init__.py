@@ -11,7 +11,8 @@ the map and the direction of imports between them).
 The fitting names (`fit_eta`, `fit_eta_sharded`, `FitResult`, `OneColumnLeastSquares`,
 `fit_dispersion`, `DispersionFit`, `fit_stack`, `StackFit`) and the figures (`plot_fit`,
 `plot_dispersion_fit`, `plot_stack_fit`, `plot_stack_map`) and the coating-design names
-(`Target`, `design`, `Design`, `merit`, `target_values`, `thickness_errors`, `ThicknessErrors`, `ErrorAnalysis`)
+(`Target`, `design`, `Design`, `merit`, `target_values`, `thickness_errors`, `ThicknessErrors`,
+`ErrorAnalysis`, `load_design`, `plot_design`)
 are imported on first use.
 optimistix, equinox and lineax load when a fit traces a program (not when `fit_eta` or
 `fit_stack` loads its compiled program from the cache); a program that only calls the kernels
@@ -134,6 +135,8 @@ _LAZY = {
     "merit": "._design._design",
     "thickness_errors": "._design._design",
     "target_values": "._design._design",
+    "load_design": "._design._file",
+    "plot_design": "._design._plot",
     "ThicknessErrors": "._design._errors",
     "ErrorAnalysis": "._design._errors",
 }
@@ -164,6 +167,8 @@ if _typing.TYPE_CHECKING:
     from ._design._design import design as design
     from ._design._design import merit as merit
     from ._design._design import target_values as target_values
+    from ._design._file import load_design as load_design
+    from ._design._plot import plot_design as plot_design
     from ._design._design import thickness_errors as thickness_errors
     from ._design._errors import ErrorAnalysis as ErrorAnalysis
     from ._design._errors import ThicknessErrors as ThicknessErrors

@@ -8,6 +8,9 @@ Commands:
           Sellmeier or Cauchy law over all its wavelengths.
   fit-stack  fit a layered sample (film thicknesses, n, k, dispersion) to spectroscopic data
           (psi/delta, N/C/S, Mueller, R, T) with a TOML model (`fit-stack --example`: SiO2 on Si).
+  design  design a coating's layer thicknesses to meet targets (R, T, A, phase, GD, GDD,
+          psi/delta) from a TOML file, by refinement and needle synthesis (`design --example`:
+          a broadband anti-reflection coating on N-BK7).
   bench   measure speed (and error) side by side on this machine; --quick for a short run.
   stress  numerical stress test of every kernel (10^6 inputs per dtype; values, gradients,
           invariants) against high-precision references.
@@ -377,6 +380,51 @@ def _plot_fits(fits, args, title):
     fig.savefig(args.plot, dpi=120)
 
 
+def _design(args) -> int:
+    import jax
+    import numpy as np
+
+    _use_compilation_cache(args)
+    jax.config.update("jax_enable_x64", True)
+    import jaxoptics as jo
+
+    from ._design._file import DesignFile, write_sample
+
+    if args.example == bool(args.file):
+        print("design: give a design file or --example", file=sys.stderr)
+        return 2
+    path = Path(jo.__file__).parent / "data" / "example_ar_design.toml" if args.example else Path(args.file)
+    try:
+        src = DesignFile(path)
+        opts = dict(src.options)
+        print(f"jaxoptics design: {path}: {len(src.sample.layers)} start layers, {len(src.targets)} targets "
+              f"({sum(t.points for t in src.targets)} points), merit {jo.merit(src.sample, src.targets):.4g}"
+              + (f"; needle synthesis with {len(opts.get('materials', []))} materials" if opts.get("needle") else ""))
+        d = jo.design(src.sample, src.targets, progress=True, **opts)
+    except (ValueError, ImportError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(d.table())
+    ea = jo.thickness_errors(d, src.targets)
+    print(f"under 1 % thickness errors (100 draws): expected merit {ea.expected_merit:.4g}, "
+          f"yield (merit <= 1) {100 * ea.yield_fraction:.0f} %; most sensitive layer: "
+          f"{d.names[int(np.argmax(ea.sensitivity))] if d.layers else '-'}")
+    if args.out:
+        write_sample(args.out, d, src)
+        print(f"designed sample written to {args.out}")
+    if args.plot:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig = jo.plot_design(d, src.targets, title=src.doc.get("title"))
+        fig.savefig(args.plot, dpi=120)
+        plt.close(fig)
+        print(f"plot saved to {args.plot}")
+    return 0
+
+
 def _tools_missing() -> str | None:
     """The name of a tool dependency that is not installed, or None."""
     import importlib.util
@@ -466,6 +514,16 @@ def main(argv=None) -> int:
     p.add_argument("--wavelength-unit", choices=("nm", "um", "1/cm"), help="a headerless photometric file's wavelength unit")
     p.add_argument("--no-cache", action="store_true", help="do not use the compilation cache (see `fit --help`)")
     p.set_defaults(func=_fit_stack)
+
+    p = sub.add_parser("design", help="design a coating to meet targets, from a TOML file (refinement, needle synthesis)")
+    p.add_argument("file", nargs="?", help="the design: a sample file (docs/layered-fits) with [[target]] tables and "
+                                           "[design] options (docs/coatings)")
+    p.add_argument("--example", action="store_true", help="the bundled example: a broadband AR coating on N-BK7")
+    p.add_argument("--plot", metavar="OUT.png", help="save the designed spectra against the targets, the index profile "
+                                                     "and the merit's history")
+    p.add_argument("--out", metavar="DESIGN.toml", help="write the designed sample as a sample file (fit-stack --model reads it)")
+    p.add_argument("--no-cache", action="store_true", help="do not use the compilation cache (see `fit --help`)")
+    p.set_defaults(func=_design)
 
     p = sub.add_parser("bench", help="speed and error, side by side with peers, on this machine")
     p.add_argument("--quick", action="store_true", help="a reduced run (about a minute)")

@@ -190,3 +190,71 @@ def test_design_runs_in_float32():
     with jax.enable_x64(False):
         d = jo.design(jo.Sample((jo.Layer(1.38, jo.Free(80.0, 10.0, 200.0)),), NS), [jo.Target("R", 550.0, 0.0)])
     assert d.values[0] == pytest.approx(550.0 / (4 * 1.38), rel=1e-3)
+
+
+DESIGN_FILE = """
+title = "two-layer AR"
+[[layer]]
+name = "outer"
+material = { n = 1.38 }
+thickness_nm = { value = 110, min = 20, max = 250 }
+[[layer]]
+material = "Al2O3"
+thickness_nm = { value = 60, min = 20, max = 250 }
+[substrate]
+material = { model = "sellmeier", B = [1.03961212, 0.231792344, 1.01046945], C = [0.00600069867, 0.0200179144, 103.560653] }
+[[target]]
+quantity = "R"
+wavelength_nm = { from = 450, to = 650, step = 25 }
+value = 0.0
+tolerance = 0.01
+[[target]]
+quantity = "T"
+wavelength_nm = [550.0]
+value = 0.95
+kind = ">="
+angle_deg = 30
+polarization = "s"
+[design]
+starts = 3
+seed = 1
+"""
+
+
+def test_design_file_round_trip_through_the_command_line(tmp_path, capsys):
+    """`design FILE --out OUT --plot P`: the file's sample, targets and options are those of the
+    Python API; the written sample file reads back (`load_sample`) to the designed sample, whose
+    merit is the design's."""
+    from jaxoptics.__main__ import main
+
+    path = tmp_path / "ar.toml"
+    path.write_text(DESIGN_FILE)
+    sample, targets, options = jo.load_design(path)
+    assert options == {"starts": 3, "seed": 1}
+    assert [t.quantity for t in targets] == ["R", "T"] and targets[0].points == 9 and targets[1].kind == ">="
+    assert sample.free_names() == ["outer.thickness_nm", "layer2.thickness_nm"]
+    out, png = tmp_path / "out.toml", tmp_path / "d.png"
+    assert main(["design", str(path), "--out", str(out), "--plot", str(png), "--no-cache"]) == 0
+    printed = capsys.readouterr().out
+    designed = jo.load_sample(out)
+    expected = jo.design(sample, targets, **options)
+    assert f"merit {expected.merit:.4g}" in printed
+    assert [layer.thickness_nm for layer in designed.layers] == pytest.approx(list(expected.values), rel=1e-12)
+    assert jo.merit(designed, targets) == pytest.approx(expected.merit, rel=1e-10)
+    assert png.stat().st_size > 20000
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda s: s.replace('quantity = "T"', 'quantity = "Q"'), "target[1]: Target quantity 'Q'"),
+    (lambda s: s.replace("step = 25", "step = -25"), "target[0].wavelength_nm: the range needs"),
+    (lambda s: s.replace("starts = 3", "starts = 3.5"), "design.starts must be int"),
+    (lambda s: s.replace("seed = 1", "speed = 1"), "design.speed is not an option"),
+    (lambda s: s.replace("kind = \">=\"", "knd = \">=\""), "target[1]: unknown keys ['knd']"),
+    (lambda s: s.split("[[target]]")[0], "no targets"),
+])
+def test_bad_design_files_are_named(tmp_path, edit, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(edit(DESIGN_FILE))
+    with pytest.raises(ValueError) as e:
+        jo.load_design(path)
+    assert str(path) in str(e.value) and message in str(e.value)

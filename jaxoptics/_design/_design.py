@@ -12,12 +12,14 @@ The method:
 2. **Needle synthesis** (`needle=True`): the needle function of every candidate material at every
    sampled depth (`jaxoptics._design._needle`) in one gradient pass; a needle of the best material
    at the best depth (the most negative derivative) is inserted, a quarter of the depth spacing
-   thick; the design is refined with lower bounds of zero; free layers thinner than
-   `min_thickness_nm` (at least 0.1 nm) are removed and neighbours of one material merged; and
-   again, until no needle lowers the merit (a needle derivative below `1e-4 MF^2` per spacing),
+   thick; the design is refined with lower bounds of zero; free layers thinner than 0.1 nm are
+   removed and neighbours of one material merged; and again, until no needle lowers the merit (a needle derivative below `1e-4 MF^2` per spacing),
    a round lowers it by less than `1e-3` of itself, the next needle would exceed `max_layers`
    slots, or the total physical thickness reaches `max_total_nm`. A last refinement keeps every
-   free layer within `[min_thickness_nm, max_thickness_nm]`. Every round runs the same two
+   free layer within `[min_thickness_nm, max_thickness_nm]`: layers thinner than
+   `min_thickness_nm` are either removed or grown to it, whichever refines to the lower merit
+   (a thin layer that the rounds keep may grow useful in a later round, so the limit is applied
+   once, at the end). Every round runs the same two
    compiled programs: the design lives in `max_layers` slots, unused ones of zero thickness.
 3. **Robust design** (`robust=ThicknessErrors(...)`): the refinements minimize the mean of `MF^2`
    over that set of random thickness errors (the same draws throughout) instead of `MF^2`.
@@ -168,15 +170,30 @@ def design(sample: Sample, targets: Sequence[Target], *, starts: Any = 1, needle
     if needle:
         cand_ids = [_layers.Slots.index(s, c) for c in cands]
         s, history = _synthesize(problem, s, cand_ids, history, float(wl_all.min()) * _needle.NEEDLE_SPACING,
-                                 max(min_thickness_nm, _THINNEST), max_total_nm, max_rounds, max_steps, progress)
-        # the last refinement within every layer's bounds
-        lo = np.where(s.free, np.maximum(s.lo, min_thickness_nm), s.lo)
-        hi = np.where(s.free, s.hi if max_thickness_nm is None else np.minimum(s.hi, max_thickness_nm), s.hi)
-        s = s.replace(lo=lo, hi=hi)
-        D, mf2, _ = _refine.refine(problem, s, s.d[None], max_steps)
-        s = s.replace(d=D[0])
-        history.append(float(np.sqrt(mf2[0])))
+                                 _THINNEST, max_total_nm, max_rounds, max_steps, progress)
+        s = _within_limits(problem, s, min_thickness_nm, max_thickness_nm, max_steps)
+        history.append(float(np.sqrt(_refine.run(_refine.merit2_program, problem, jax.numpy.asarray(s.ids),
+                                                 s.d[None].astype(problem.dtype))[0])))
     return _result(s, sample, history, merits)
+
+
+def _within_limits(problem, s, min_t, max_t, max_steps):
+    """The last refinement (module docstring, step 2), every free layer within `[min_t, max_t]`.
+    Free layers thinner than `min_t` are either removed or grown to it, whichever refines to the
+    lower merit."""
+    def bounded(x):
+        lo = np.where(x.free, np.maximum(x.lo, min_t), x.lo)
+        hi = np.where(x.free, x.hi if max_t is None else np.minimum(x.hi, max_t), x.hi)
+        x = x.replace(lo=lo, hi=np.maximum(hi, lo))
+        D, m2, _ = _refine.refine(problem, x, np.clip(x.d, x.lo, x.hi)[None], max_steps)
+        return x.replace(d=D[0]), float(m2[0])
+
+    keep, m_keep = bounded(s)
+    thin = s.free[:s.used] & (s.d[:s.used] < min_t)
+    if not thin.any():
+        return keep
+    drop, m_drop = bounded(_layers.cleanup(s, min_t))
+    return drop if m_drop < m_keep else keep
 
 
 def _synthesize(problem, s, cand_ids, history, spacing, thinnest, max_total, max_rounds, max_steps, progress):

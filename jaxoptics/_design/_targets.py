@@ -77,6 +77,8 @@ class Target:
     tolerance: Any = None
     weight: float = 1.0
     kind: str = "="
+    # (wavelength_nm, value, angle_deg, tolerance) as float arrays of one length, set on creation
+    _points: tuple = dataclasses.field(init=False, repr=False, default=())
 
     def __post_init__(self):
         if self.quantity not in QUANTITIES:
@@ -110,7 +112,7 @@ class Target:
 
     @property
     def points(self) -> int:
-        return self._points[0].size  # type: ignore[attr-defined]
+        return self._points[0].size
 
 
 @dataclasses.dataclass(frozen=True)

@@ -86,6 +86,15 @@ def _param(v, where):
     raise _Err(f"{where}: expected a number or {{ value = ..., min = ..., max = ... }}, got {v!r}")
 
 
+def material_of(v, where: str, base: Path) -> Dispersion:
+    """The material a TOML value describes (the forms of this module's docstring); `where` names
+    the key in errors, `base` the folder files are relative to."""
+    try:
+        return _material(v, where, base)
+    except _Err as e:
+        raise ValueError(str(e)) from None
+
+
 def _material(v, where, base: Path):
     if isinstance(v, str):
         try:
@@ -208,11 +217,17 @@ def load_sample(path: str | Path) -> Sample:
     name the file and the key (`layer[1].material.A`), or the line and column of a TOML syntax
     error."""
     path = Path(path)
-    doc = read_toml(path)
+    return sample_from_doc(read_toml(path), path)
+
+
+def sample_from_doc(doc: dict, path: Path, more_keys: tuple = ()) -> Sample:
+    """The `Sample` of a parsed TOML file `doc` read from `path` (errors name the file), whose
+    top level may also hold `more_keys` (a design file's `target` and `design`)."""
     try:
-        unknown = set(doc) - {"ambient", "layer", "substrate", "title", "instrument"}
+        unknown = set(doc) - {"ambient", "layer", "substrate", "title", "instrument", *more_keys}
         if unknown:
-            raise _Err(f"unknown top-level keys {sorted(unknown)} (known: ambient, layer, substrate, instrument, title)")
+            known = ", ".join(["ambient", "layer", "substrate", "instrument", "title", *more_keys])
+            raise _Err(f"unknown top-level keys {sorted(unknown)} (known: {known})")
         layers = []
         for i, lay in enumerate(doc.get("layer", [])):
             where = f"layer[{i}]"
