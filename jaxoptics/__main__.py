@@ -528,8 +528,8 @@ def main(argv=None) -> int:
     p = sub.add_parser("bench", help="speed and error, side by side with peers, on this machine")
     p.add_argument("--quick", action="store_true", help="a reduced run (about a minute)")
     p.add_argument("--out", default="bench_out", help="directory for bench.md, bench.json and the charts")
-    p.add_argument("--sections", default="kernels,fit,stack,stackfit,devices,latency",
-                   help="comma-separated: kernels, fit, stack, stackfit, devices, latency")
+    p.add_argument("--sections", default="kernels,fit,stack,stackfit,design,devices,latency",
+                   help="comma-separated: kernels, fit, stack, stackfit, design, devices, latency")
     p.add_argument("--no-mitsuba", action="store_true", help="skip Mitsuba 3 even if installed")
     p.set_defaults(func=_bench)
     p = sub.add_parser("stress", help="numerical stress test of every kernel")

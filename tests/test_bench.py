@@ -252,3 +252,22 @@ def test_stackfit_bench_section():
     # pyElli's model is the same to rounding, and its row's time is read against jaxoptics'
     assert rows[3]["agree_deg"] < 1e-9 and rows[3]["median_calls"] >= 5 and "pyElli's to" in text
     assert "the same scipy loop calls it" in text and text.count("x |") == 4 + len(effects)
+
+
+def test_design_bench_section():
+    """The design section refines the same starts with jaxoptics (one call) and scipy (NumPy's and
+    tmm's model, one start at a time), whose models agree with jaxoptics', runs the needle example,
+    and tabulates time per start and merit reached side by side."""
+    from jaxoptics.tools.bench_design import bench_design, design_table
+
+    rows = bench_design(layers=4, sizes=(12, 4, 2, 1))
+    agree = rows[-1]
+    assert agree["numpy_vs_jaxoptics"] < 1e-12 and agree["tmm_vs_jaxoptics"] < 1e-12 and agree["points"] == 48
+    ours, np_row, tmm_row, needle = rows[:4]
+    assert ours["starts"] == 4 and len(ours["merits"]) == 4 and ours["first_call"] >= ours["seconds"] > 0
+    assert np_row["starts"] == 2 and tmm_row["starts"] == 1 and np_row["per_start"] > 0
+    # from the same starts, LM with exact derivatives reaches what scipy's trust region does, or lower
+    assert min(ours["merits"][:2]) <= min(np_row["merits"]) * (1 + 1e-3)
+    assert needle["rounds"] >= 1 and needle["merit"] < needle["merit_start"] / 3
+    text = design_table(rows)
+    assert "| jaxoptics design, 4 starts in one call | 4 |" in text and text.count("x slower") == 2 and "Needle synthesis" in text

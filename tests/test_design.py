@@ -123,6 +123,7 @@ def test_group_delay_and_its_dispersion_equal_finite_differences_of_the_phase():
     assert np.all(got["GD", "t", "s"] > 0)
 
 
+@pytest.mark.slow
 def test_needle_synthesis_lowers_the_merit_within_the_constraints():
     """From one thick low-index layer on glass, needle rounds with two candidates lower the
     broadband anti-reflection merit several times over; the result keeps the minimum thickness,
@@ -139,6 +140,7 @@ def test_needle_synthesis_lowers_the_merit_within_the_constraints():
     assert d.merit == pytest.approx(jo.merit(d.sample, targets), rel=1e-9)
 
 
+@pytest.mark.slow
 def test_thickness_errors_yield_and_robust_design():
     """Each drawn design's merit is the merit of that perturbed sample computed on its own; the
     yield counts them; a robust refinement from the nominal optimum lowers the mean merit squared
@@ -221,6 +223,7 @@ seed = 1
 """
 
 
+@pytest.mark.slow
 def test_design_file_round_trip_through_the_command_line(tmp_path, capsys):
     """`design FILE --out OUT --plot P`: the file's sample, targets and options are those of the
     Python API; the written sample file reads back (`load_sample`) to the designed sample, whose
@@ -258,3 +261,31 @@ def test_bad_design_files_are_named(tmp_path, edit, message):
     with pytest.raises(ValueError) as e:
         jo.load_design(path)
     assert str(path) in str(e.value) and message in str(e.value)
+
+
+def test_color_targets_equal_colour_science():
+    """Chromaticity and CIELAB of a coating's reflectance and transmittance under D65 and A equal
+    colour-science's (`sd_to_XYZ` by integration with the observer and illuminant on the same 5 nm
+    grid, `XYZ_to_Lab` with the illuminant's white)."""
+    import colour
+
+    sample = jo.Sample((jo.Layer(2.1, 95.0), jo.Layer(1.46, 160.0), jo.Layer(2.1, 70.0)), NS)
+    grid = np.arange(380.0, 781.0, 5.0)
+    quantities = ("x", "y", "L*", "a*", "b*")
+    for ill in ("D65", "A"):
+        targets = [jo.Target(f"{side}_{q}", grid, 0.0, illuminant=ill) for side in "RT" for q in quantities]
+        spectra = jo.target_values(sample, [jo.Target("R", grid, 0.0), jo.Target("T", grid, 0.0)])
+        got = [float(v[0]) for v in jo.target_values(sample, targets)]
+        shape = colour.SpectralShape(380, 780, 5)
+        cmfs = colour.colorimetry.reshape_msds(colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"], shape)
+        illum = colour.colorimetry.reshape_sd(colour.SDS_ILLUMINANTS[ill], shape)
+        expect = []
+        for spec in spectra:
+            sd = colour.SpectralDistribution(dict(zip(grid, spec)))
+            XYZ = colour.sd_to_XYZ(sd, cmfs, illum, method="Integration")
+            white = colour.sd_to_XYZ(colour.SpectralDistribution(dict(zip(grid, np.ones_like(grid)))), cmfs, illum,
+                                     method="Integration")
+            xy = colour.XYZ_to_xy(XYZ)
+            Lab = colour.XYZ_to_Lab(XYZ / 100, colour.XYZ_to_xy(white))
+            expect += [xy[0], xy[1], *Lab]
+        np.testing.assert_allclose(got, expect, rtol=1e-9, atol=1e-9)

@@ -28,11 +28,15 @@ def plot_design(design: Design, targets: Sequence[Target], *, title: str | None 
     import matplotlib.pyplot as plt
 
     from ._design import target_values
+    from ._targets import COLOR
 
     targets = list(targets)
     probes = []
     for t in targets:
         wl = t._points[0]
+        if t.quantity in COLOR:  # the spectrum whose colour it is
+            probes.append(Target(t.quantity[0], wl, 0.0, angle_deg=float(t._points[2][0]), polarization=t.polarization))
+            continue
         lo, hi = float(wl.min()), float(wl.max())
         if hi - lo < 1e-9 * hi:
             lo, hi = 0.9 * lo, 1.1 * hi
@@ -40,6 +44,8 @@ def plot_design(design: Design, targets: Sequence[Target], *, title: str | None 
         probes.append(Target(t.quantity, np.linspace(lo, hi, 241), 0.0, angle_deg=float(np.mean(ang)),
                              polarization=t.polarization))
     curves = target_values(design, probes)
+    colors = target_values(design, [t for t in targets if t.quantity in COLOR]) if any(t.quantity in COLOR for t in targets) else []
+    colors_it = iter(colors)
     n = len(targets) + 2
     cols = min(3, n)
     rows = -(-n // cols)
@@ -48,6 +54,12 @@ def plot_design(design: Design, targets: Sequence[Target], *, title: str | None 
     for ax, t, p, c in zip(axes, targets, probes, curves):
         wl, value, ang, tol = t._points
         ax.plot(p._points[0], c, lw=1.4, label="design")
+        if t.quantity in COLOR:
+            got = float(next(colors_it)[0])
+            ax.set_title(f"{t.quantity} under {t.illuminant}: {got:.4g} (target {t.kind} {value[0]:g} +- {tol[0]:g})", fontsize=9)
+            ax.set_xlabel("wavelength (nm)")
+            ax.set_ylabel(t.quantity[0])
+            continue
         marker = {"=": "o", "<=": "v", ">=": "^"}[t.kind]
         if wl.size > 1:  # the tolerance as a band around the target (or the bound's allowed side)
             order = np.argsort(wl)

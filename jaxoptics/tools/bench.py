@@ -18,6 +18,7 @@ from .bench_stack import LAYERS, stack_chart
 
 def _sections(sections):
     """(name, title, measure, table) of the requested sections after "kernels", in report order."""
+    from .bench_design import bench_design, design_table
     from .bench_latency import bench_latency, latency_table
     from .bench_stack import bench_stack, stack_table
     from .bench_stack_fit import bench_stack_fit, stack_fit_table
@@ -28,6 +29,7 @@ def _sections(sections):
          "indices shared or per point, reflectances or every output, forward and gradient", bench_stack, stack_table),
         ("stackfit", "Film fits over a wafer map: psi/delta, 200 wavelengths x 3 angles per spectrum; thickness and Cauchy "
          "A, B, C free", bench_stack_fit, stack_fit_table),
+        ("design", "Coating design: refinement from many starts, and needle synthesis", bench_design, design_table),
         ("latency", "Latency: from the command to the answer (fresh processes)", bench_latency, latency_table),
         ("devices", "Sharding over devices (forced host devices sharing this machine's cores)", bench_devices,
          devices_table),
@@ -35,7 +37,7 @@ def _sections(sections):
     return [k for k in known if k[0] in sections]
 
 
-def run(*, quick=False, sections=("kernels", "fit", "stack", "stackfit", "devices", "latency"), out_dir="bench_out", sizes=None,
+def run(*, quick=False, sections=("kernels", "fit", "stack", "stackfit", "design", "devices", "latency"), out_dir="bench_out", sizes=None,
         mitsuba=True) -> dict:
     import jax
     from tqdm.auto import tqdm
@@ -48,7 +50,7 @@ def run(*, quick=False, sections=("kernels", "fit", "stack", "stackfit", "device
     md = [f"Measured by `{cmd}` on {report['date']}. Machine: {report['machine']}.", ""]
     total = (6 * ("fit" in sections) + 3 * ("devices" in sections) + 25 * ("kernels" in sections) + (1 + 2 * len(LAYERS)) * ("stack" in sections)
              + (5 + (2 if quick else 5)) * ("stackfit" in sections)  # the map, scipy, pyElli; the effects (EFFECTS)
-             + 9 * ("latency" in sections))
+             + 9 * ("latency" in sections) + 5 * ("design" in sections))
     with tqdm(total=total, desc="bench", unit="step") as bar:
         if "kernels" in sections:
             rows = bench_kernels(quick=quick, progress=bar, sizes=sizes, mitsuba=mitsuba)
