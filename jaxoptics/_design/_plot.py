@@ -24,7 +24,8 @@ def plot_design(design: Design, targets: Sequence[Target], *, title: str | None 
     """A matplotlib `Figure` of `design` (a `Design`) against `targets`: one panel per target
     (the designed curve over the target's wavelengths, 10 % wider where it is one wavelength;
     the target points, with their tolerances as a band, or as error bars for one point;
-    one-sided targets as triangles), the index profile, and the merit per needle round."""
+    one-sided targets as triangles), the index profile, and the merit per needle round (or, for
+    a refinement alone, the merit each start reached)."""
     import matplotlib.pyplot as plt
 
     from ._design import target_values
@@ -61,12 +62,13 @@ def plot_design(design: Design, targets: Sequence[Target], *, title: str | None 
             ax.set_ylabel(t.quantity[0])
             continue
         marker = {"=": "o", "<=": "v", ">=": "^"}[t.kind]
-        if wl.size > 1:  # the tolerance as a band around the target (or the bound's allowed side)
+        if wl.size > 1:  # one tolerance around the target, or beyond a bound (the scale of its violation)
             order = np.argsort(wl)
             w, v, e = wl[order], value[order], tol[order]
-            lo = v - e if t.kind != ">=" else v
-            hi = v + e if t.kind != "<=" else v
-            ax.fill_between(w, lo, hi, color="C3", alpha=0.15, lw=0, label="tolerance")
+            lo = v - e if t.kind == "=" else v if t.kind == "<=" else v - e
+            hi = v + e if t.kind == "=" else v + e if t.kind == "<=" else v
+            ax.fill_between(w, lo, hi, color="C3", alpha=0.15, lw=0,
+                            label="tolerance" if t.kind == "=" else "one tolerance beyond the bound")
             ax.plot(w, v, marker, ms=2.5, color="C3", label=f"target ({t.kind})")
         else:
             ax.errorbar(wl, value, yerr=tol, fmt=marker, ms=4, lw=0.8, color="C3", label=f"target ({t.kind})")
@@ -85,8 +87,12 @@ def plot_design(design: Design, targets: Sequence[Target], *, title: str | None 
     ax.set_ylabel(f"n at {wl_min:g} nm")
     ax.set_title(f"{design.layers} layers, {depth[-1]:.0f} nm", fontsize=9)
     ax = axes[len(targets) + 1]
-    ax.semilogy(np.arange(design.history.size), design.history, "o-", ms=3)
-    ax.set_xlabel("refinement (0: starts; then needle rounds)")
+    if design.history.size > 1:
+        ax.semilogy(np.arange(design.history.size), design.history, "o-", ms=3)
+        ax.set_xlabel("refinement (0: the starts; then needle rounds)")
+    else:  # one refinement: what each start reached
+        ax.semilogy(np.arange(1, design.merits.size + 1), np.sort(design.merits), "o", ms=3)
+        ax.set_xlabel("start (sorted by the merit it reached)")
     ax.set_ylabel("merit")
     ax.set_title(f"merit {design.merit:.4g}", fontsize=9)
     for ax in axes[n:]:
