@@ -289,3 +289,18 @@ def test_color_targets_equal_colour_science():
             Lab = colour.XYZ_to_Lab(XYZ / 100, colour.XYZ_to_xy(white))
             expect += [xy[0], xy[1], *Lab]
         np.testing.assert_allclose(got, expect, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_gradual_evolution_goes_on_where_needle_rounds_stall():
+    """A single-layer coating refined to its quarter-wave optimum has no needle that helps: the
+    rounds stall at once. With gradual evolution the design is thickened and needle rounds go on,
+    to a merit several times lower with more layers; the result is the best design met."""
+    start = jo.Sample((jo.Layer(1.46, jo.Free(150.0, 0.0)),), NS)
+    targets = [jo.Target("R", np.linspace(420.0, 680.0, 14), 0.0, tolerance=0.005)]
+    plain = jo.design(start, targets, needle=True, materials=[1.46, 2.1], max_layers=14)
+    grown = jo.design(start, targets, needle=True, materials=[1.46, 2.1], max_layers=14, gradual=0.3)
+    assert plain.layers == 1 and plain.history.size == 2
+    assert grown.layers > 2 and grown.merit < plain.merit / 3
+    assert grown.merit == pytest.approx(min(grown.history), rel=1e-9)
+    assert np.max(grown.history) > plain.merit  # a thickened design is worse before needles go in

@@ -21,6 +21,10 @@ The method:
    (a thin layer that the rounds keep may grow useful in a later round, so the limit is applied
    once, at the end). Every round runs the same two
    compiled programs: the design lives in `max_layers` slots, unused ones of zero thickness.
+   **Gradual evolution** (`gradual > 0`): where the rounds stall, every free layer is made
+   `1 + gradual` times thicker (not refined: that would take it back to where the rounds stalled)
+   and needle rounds go on; a second stall before the merit beats the best so far ends the
+   synthesis with the best design.
 3. **Robust design** (`robust=ThicknessErrors(...)`): the refinements minimize the mean of `MF^2`
    over that set of random thickness errors (the same draws throughout) instead of `MF^2`.
 """
@@ -117,7 +121,8 @@ def _starts(s: _layers.Slots, starts, wl_max, rng) -> np.ndarray:
 def design(sample: Sample, targets: Sequence[Target], *, starts: Any = 1, needle: bool = False, materials: Sequence[Any] | None = None,
            max_layers: int | None = None, min_thickness_nm: float = 0.0, max_thickness_nm: float | None = None,
            max_total_nm: float | None = None, max_rounds: int = 40, max_steps: int = 200,
-           robust: _errors.ThicknessErrors | None = None, seed: int = 0, progress: bool = False) -> Design:
+           robust: _errors.ThicknessErrors | None = None, gradual: float = 0.0, seed: int = 0,
+           progress: bool = False) -> Design:
     """Design the free thicknesses of `sample` to meet `targets` (see the module docstring for the
     method).
 
@@ -136,6 +141,8 @@ def design(sample: Sample, targets: Sequence[Target], *, starts: Any = 1, needle
     - `max_total_nm`: needle synthesis inserts no needle once the total thickness reaches it.
     - `max_rounds`, `max_steps`: needle rounds; Levenberg-Marquardt steps per refinement.
     - `robust`: `ThicknessErrors` whose mean merit is minimized instead of the merit.
+    - `gradual`: gradual evolution: when needle rounds stall, the free layers are made this fraction
+      thicker and needle rounds go on (0, the default, stops at the first stall).
     - `seed`: of the random starts. `progress`: print a line per needle round.
 
     **Returns:** a `Design`.
@@ -154,6 +161,8 @@ def design(sample: Sample, targets: Sequence[Target], *, starts: Any = 1, needle
     if budget is not None:
         _check_int(budget, "max_layers", 1)
     max_steps = _check_int(max_steps, "max_steps", 1)
+    if isinstance(gradual, bool) or not isinstance(gradual, (int, float)) or not 0 <= gradual < 10:
+        raise ValueError(f"design: gradual must be a number in [0, 10), got {gradual!r}")
     # during needle rounds, layers may thin to zero (and are removed); the last refinement applies min_thickness_nm
     s = _layers.from_sample(sample, cands if needle else [], budget, 0.0 if needle else min_thickness_nm, max_thickness_nm)
     if not s.free.any() and not needle:
@@ -170,7 +179,7 @@ def design(sample: Sample, targets: Sequence[Target], *, starts: Any = 1, needle
     if needle:
         cand_ids = [_layers.Slots.index(s, c) for c in cands]
         s, history = _synthesize(problem, s, cand_ids, history, float(wl_all.min()) * _needle.NEEDLE_SPACING,
-                                 _THINNEST, max_total_nm, max_rounds, max_steps, progress)
+                                 _THINNEST, max_total_nm, max_rounds, max_steps, progress, gradual)
         s = _within_limits(problem, s, min_thickness_nm, max_thickness_nm, max_steps)
         history.append(float(np.sqrt(_refine.run(_refine.merit2_program, problem, jax.numpy.asarray(s.ids),
                                                  s.d[None].astype(problem.dtype))[0])))
@@ -196,30 +205,56 @@ def _within_limits(problem, s, min_t, max_t, max_steps):
     return drop if m_drop < m_keep else keep
 
 
-def _synthesize(problem, s, cand_ids, history, spacing, thinnest, max_total, max_rounds, max_steps, progress):
-    """The needle rounds (module docstring, step 2): the final slots and the merit history."""
-    mf = history[-1]
+def _needle_step(problem, s, cand_ids, spacing, thinnest, max_steps):
+    """One needle round: the best needle inserted and the design refined and cleaned up, with its
+    merit; None where no needle lowers the merit."""
+    z, P, ok, mf2 = _needle.needle_function(problem, s, cand_ids, spacing)
+    P = np.where(ok, P, np.inf)
+    k, c = np.unravel_index(int(np.argmin(P)), P.shape)
+    if not P[k, c] * spacing < -_MIN_SLOPE * mf2:
+        return None
+    trial = _layers.insert(s, float(z[k]), cand_ids[c], _NEEDLE_T * spacing, 0.0, math.inf)
+    D, m2, _ = _refine.refine(problem, trial, trial.d[None], max_steps)
+    trial = _layers.cleanup(trial.replace(d=D[0]), thinnest)
+    D, m2, _ = _refine.refine(problem, trial, trial.d[None], max_steps)
+    return trial.replace(d=D[0]), float(np.sqrt(m2[0]))
+
+
+def _grow(problem, s, fraction):
+    """Gradual evolution's step: every free layer made `1 + fraction` times thicker (within its
+    upper bound), not refined (a refinement would take it back to the optimum the rounds stalled
+    at): the next needle round starts from a thicker design."""
+    d = np.where(s.free, np.minimum(s.d * (1 + fraction), s.hi), s.d)
+    grown = s.replace(d=d)
+    m2 = _refine.run(_refine.merit2_program, problem, jax.numpy.asarray(grown.ids), d[None].astype(problem.dtype))
+    return grown, float(np.sqrt(m2[0]))
+
+
+def _synthesize(problem, s, cand_ids, history, spacing, thinnest, max_total, max_rounds, max_steps, progress, gradual):
+    """The needle rounds (module docstring, step 2), with gradual evolution where `gradual > 0`:
+    the best slots found and the merit history."""
+    best, best_mf = s, history[-1]
+    mf, grown = best_mf, False
     for rnd in range(max_rounds):
-        if s.used + 2 > s.size or (max_total is not None and float(np.sum(s.d)) >= max_total):
+        room = s.used + 2 <= s.size and (max_total is None or float(np.sum(s.d)) < max_total)
+        step = _needle_step(problem, s, cand_ids, spacing, thinnest, max_steps) if room else None
+        if step is not None and step[1] < mf * (1 - _MIN_GAIN):
+            s, mf = step
+            history.append(mf)
+            if progress:
+                print(f"needle round {rnd + 1}: {s.used} layers, merit {mf:.4g}", flush=True)
+            if mf < best_mf * (1 - _MIN_GAIN):  # a new best: another stall may grow the design again
+                best, best_mf, grown = s, mf, False
+            continue
+        # stalled: stop, or (gradual evolution) grow the design once and try needles again
+        if gradual <= 0 or grown or not room:
             break
-        z, P, ok, mf2 = _needle.needle_function(problem, s, cand_ids, spacing)
-        P = np.where(ok, P, np.inf)
-        k, c = np.unravel_index(int(np.argmin(P)), P.shape)
-        if not P[k, c] * spacing < -_MIN_SLOPE * mf2:
-            break
-        t = _NEEDLE_T * spacing
-        trial = _layers.insert(s, float(z[k]), cand_ids[c], t, 0.0, math.inf)
-        D, m2, _ = _refine.refine(problem, trial, trial.d[None], max_steps)
-        trial = _layers.cleanup(trial.replace(d=D[0]), thinnest)
-        D, m2, _ = _refine.refine(problem, trial, trial.d[None], max_steps)
-        new = float(np.sqrt(m2[0]))
-        if progress:
-            print(f"needle round {rnd + 1}: {trial.used} layers, merit {new:.4g}", flush=True)
-        if not new < mf * (1 - _MIN_GAIN):
-            break
-        s, mf = trial.replace(d=D[0]), new
+        s, mf = _grow(problem, s, gradual)
+        grown = True
         history.append(mf)
-    return s, history
+        if progress:
+            print(f"round {rnd + 1}, thickness grown: {s.used} layers, {float(np.sum(s.d)):.0f} nm, merit {mf:.4g}", flush=True)
+    return best, history
 
 
 def _result(s, sample, history, merits) -> Design:
