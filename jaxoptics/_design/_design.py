@@ -181,8 +181,7 @@ def design(sample: Sample, targets: Sequence[Target], *, starts: Any = 1, needle
         s, history = _synthesize(problem, s, cand_ids, history, float(wl_all.min()) * _needle.NEEDLE_SPACING,
                                  _THINNEST, max_total_nm, max_rounds, max_steps, progress, gradual)
         s = _within_limits(problem, s, min_thickness_nm, max_thickness_nm, max_steps)
-        history.append(float(np.sqrt(_refine.run(_refine.merit2_program, problem, jax.numpy.asarray(s.ids),
-                                                 s.d[None].astype(problem.dtype))[0])))
+        history.append(math.sqrt(_refine.merit2(problem, s)))
     return _result(s, sample, history, merits)
 
 
@@ -226,8 +225,7 @@ def _grow(problem, s, fraction):
     at): the next needle round starts from a thicker design."""
     d = np.where(s.free, np.minimum(s.d * (1 + fraction), s.hi), s.d)
     grown = s.replace(d=d)
-    m2 = _refine.run(_refine.merit2_program, problem, jax.numpy.asarray(grown.ids), d[None].astype(problem.dtype))
-    return grown, float(np.sqrt(m2[0]))
+    return grown, math.sqrt(_refine.merit2(problem, grown))
 
 
 def _synthesize(problem, s, cand_ids, history, spacing, thinnest, max_total, max_rounds, max_steps, progress, gradual):
@@ -263,30 +261,28 @@ def _result(s, sample, history, merits) -> Design:
                   np.asarray(merits), s.used, [s.materials[int(i)] for i in s.ids[:s.used]])
 
 
+def _evaluated(sample, targets):
+    """The `Problem` of `targets` and the slots of `sample` (or a `Design`'s sample), as it is."""
+    if isinstance(sample, Design):
+        sample = sample.sample
+    if not isinstance(sample, Sample):
+        raise ValueError(f"expected a Sample or a Design, got {type(sample).__name__}")
+    lay, arrays = _targets.layout(targets)
+    s = _layers.from_sample(sample, [], None, 0.0, None)
+    return _refine.make_problem(s, lay, arrays, _dtype()), s
+
+
 def merit(sample: Sample | Design, targets: Sequence[Target]) -> float:
     """The merit `MF` of `sample` (its `Free` parameters at their values) for `targets`."""
-    lay, arrays = _targets.layout(targets)
-    s = _layers.from_sample(_fixed(sample), [], None, 0.0, None)
-    problem = _refine.make_problem(s, lay, arrays, _dtype())
-    return float(np.sqrt(_refine.run(_refine.merit2_program, problem, jax.numpy.asarray(s.ids), s.d[None].astype(problem.dtype))[0]))
+    return math.sqrt(_refine.merit2(*_evaluated(sample, targets)))
 
 
 def target_values(sample: Sample | Design, targets: Sequence[Target]) -> list[np.ndarray]:
     """What `sample` (or a `Design`'s sample) gives for each target: one array per target, at its
     wavelengths, in its quantity's unit (for plots and reports)."""
-    lay, arrays = _targets.layout(targets)
-    s = _layers.from_sample(_fixed(sample), [], None, 0.0, None)
-    problem = _refine.make_problem(s, lay, arrays, _dtype())
+    problem, s = _evaluated(sample, targets)
     q = np.asarray(_refine.run(_refine.values_program, problem, jax.numpy.asarray(s.ids), jax.numpy.asarray(s.d, problem.dtype)))
-    return [q[a:b] for a, b in _targets.spans(lay)]
-
-
-def _fixed(sample):
-    if isinstance(sample, Design):
-        return sample.sample
-    if not isinstance(sample, Sample):
-        raise ValueError(f"expected a Sample or a Design, got {type(sample).__name__}")
-    return sample
+    return [q[a:b] for a, b in _targets.spans(problem.lay)]
 
 
 def thickness_errors(sample: Sample | Design, targets: Sequence[Target], *, errors: _errors.ThicknessErrors | None = None,
@@ -296,8 +292,6 @@ def thickness_errors(sample: Sample | Design, targets: Sequence[Target], *, erro
     compiled call. **Returns:** an `ErrorAnalysis`: the merits, the yield (fraction of draws
     with merit at most `threshold`) and each layer's sensitivity."""
     errors = errors or _errors.ThicknessErrors()
-    lay, arrays = _targets.layout(targets)
-    s = _layers.from_sample(_fixed(sample), [], None, 0.0, None)
-    problem = _refine.make_problem(s, lay, arrays, _dtype())
+    problem, s = _evaluated(sample, targets)
     m2 = lambda ids, D: _refine.run(_refine.merit2_program, problem, ids, D, starts=D.shape[0])
     return _errors.analyse(m2, jax.numpy.asarray(s.ids), s.d.astype(problem.dtype), s.used, errors, threshold)

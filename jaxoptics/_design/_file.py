@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from .._films._sample import Sample
-from .._io._model_file import material_of, read_toml, sample_from_doc
+from .._io._model_file import material_of, read_toml, sample_from_doc, tables
 from ._targets import Target
 
 _TARGET_KEYS = ("quantity", "wavelength_nm", "value", "tolerance", "angle_deg", "polarization", "kind", "weight")
@@ -69,13 +69,7 @@ class DesignFile:
         if not isinstance(raw, list) or not raw:
             raise ValueError(f"{path}: no targets: give one or more [[target]] tables")
         self.targets = []
-        for i, t in enumerate(raw):
-            where = f"{path}: target[{i}]"
-            if not isinstance(t, dict):
-                raise ValueError(f"{where}: use [[target]] tables")
-            extra = set(t) - set(_TARGET_KEYS)
-            if extra:
-                raise ValueError(f"{where}: unknown keys {sorted(extra)} (known: {', '.join(_TARGET_KEYS)})")
+        for where, t in tables(raw, path, "target", _TARGET_KEYS):
             for key in ("quantity", "wavelength_nm", "value"):
                 if key not in t:
                     raise ValueError(f"{where}: `{key}` is missing")
@@ -98,10 +92,13 @@ class DesignFile:
             if not ok:
                 raise ValueError(f"{path}: design.{key} must be {want.__name__}, got {value!r}")
             self.options[key] = float(value) if want is float else value
-        specs = [lay["material"] for lay in doc.get("layer", [])] + list(self.options.get("materials", []))
-        self._materials = [(material_of(v, f"material {v!r}", path.parent), v) for v in specs]
+        # each material with the TOML value it was read from: the layers' (read with the sample),
+        # then the needle candidates'
+        self._materials = [(layer.material, lay["material"]) for layer, lay in zip(self.sample.layers, doc.get("layer", []))]
         if "materials" in self.options:
-            self.options["materials"] = [m for m, _ in self._materials[len(doc.get("layer", [])):]]
+            cands = [(material_of(v, f"design.materials[{i}]", path.parent), v) for i, v in enumerate(self.options["materials"])]
+            self._materials += cands
+            self.options["materials"] = [m for m, _ in cands]
 
     def spec_of(self, m):
         """The TOML value that described material `m`."""

@@ -37,6 +37,11 @@ def as_material(m, what) -> Dispersion:
     return Layer(m, 0.0).material
 
 
+def _position(materials, m) -> int | None:
+    """Where `m` (or a material equal to it) stands in `materials`, or None."""
+    return next((i for i, x in enumerate(materials) if x is m or x == m), None)
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Slots:
     """`ids[j]` (index into `materials`) and `d[j]` (nm) of slot `j`, top first; `free[j]` whether
@@ -59,10 +64,10 @@ class Slots:
 
     def index(self, m) -> int:
         """The position of material `m` in `materials`."""
-        for i, x in enumerate(self.materials):
-            if x is m or x == m:
-                return i
-        raise ValueError(f"{m!r} is not among the design's materials")
+        i = _position(self.materials, m)
+        if i is None:
+            raise ValueError(f"{m!r} is not among the design's materials")
+        return i
 
     def replace(self, **kw) -> Slots:
         return dataclasses.replace(self, **kw)
@@ -95,11 +100,11 @@ def from_sample(sample: Sample, candidates, slots: int | None, min_t: float, max
     mats: list = []
 
     def index_of(m):
-        for i, x in enumerate(mats):
-            if x is m or x == m:
-                return i
-        mats.append(m)
-        return len(mats) - 1
+        i = _position(mats, m)
+        if i is None:
+            mats.append(m)
+            i = len(mats) - 1
+        return i
 
     for owner, model in sample._slots():
         free = [p for p, leaf in parameter_leaves(model) if isinstance(leaf, Free)]

@@ -62,6 +62,7 @@ class Problem:
         """The merit's residuals of the design `(ids, d)` (any number of slots)."""
         return residuals(self.lay, self.values(ids, d), self.arrays)
 
+    @functools.cached_property
     def _key(self):
         """What the traced programs depend on (not the slots' thicknesses or materials' order
         in use, which are arguments): equal problems share compiled programs."""
@@ -70,10 +71,10 @@ class Problem:
         return (self.slots.materials, self.slots.ambient, self.slots.substrate, self.lay, arr, self.dtype, err)
 
     def __eq__(self, other):
-        return isinstance(other, Problem) and self._key() == other._key()
+        return isinstance(other, Problem) and self._key == other._key
 
     def __hash__(self):
-        return hash(self._key())
+        return hash(self._key)
 
     def values(self, ids, d):
         """Every target point's computed value (target order)."""
@@ -140,6 +141,11 @@ def refine_program(problem: Problem, ids, U0, free, lo, hi, d_fixed, *, max_step
 def merit2_program(problem: Problem, ids, D):
     """`MF^2` of each row of `D` (`(B, S)` thicknesses) with materials `ids`."""
     return jax.vmap(lambda d: jnp.sum(problem.objective(ids, d) ** 2))(D)
+
+
+def merit2(problem: Problem, s: Slots) -> float:
+    """`MF^2` of the design `s` as it is."""
+    return float(run(merit2_program, problem, jnp.asarray(s.ids), jnp.asarray(s.d[None], problem.dtype))[0])
 
 
 def values_program(problem: Problem, ids, d):

@@ -35,7 +35,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._films._sample import model_quantities
-from .._films._stack import stack
 
 # speed of light in nm per fs
 C_NM_FS = 299.792458
@@ -315,7 +314,3 @@ def residuals(lay: Layout, computed, arrays):
         out.append(d)
     return jnp.concatenate(out) / arrays["tolerance"] * arrays["sqrt_w"]
 
-
-def stack_function(n_table, d, incoherent=()):
-    """`stack_fn` for `quantities`: `n_table(wavelength_nm)` gives the `(P, L)` indices."""
-    return lambda wl, cos_i: stack(n_table(wl), d, wl, cos_i, incoherent=incoherent)

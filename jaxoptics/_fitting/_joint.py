@@ -267,7 +267,7 @@ def load_joint(path) -> tuple[list[Dataset], tuple | None]:
     from pathlib import Path
 
     from .._io._load import load_spectra
-    from .._io._model_file import load_sample, read_toml
+    from .._io._model_file import load_sample, read_toml, tables
 
     path = Path(path)
     doc = read_toml(path)
@@ -281,13 +281,7 @@ def load_joint(path) -> tuple[list[Dataset], tuple | None]:
     if shared is not None and not (isinstance(shared, list) and all(isinstance(s, str) for s in shared)):
         raise ValueError(f"{path}: shared must be a list of parameter names, got {shared!r}")
     out = []
-    for i, entry in enumerate(entries):
-        where = f"{path}: dataset[{i}]"
-        if not isinstance(entry, dict):
-            raise ValueError(f"{where}: use [[dataset]] tables")
-        extra = set(entry) - set(_DATASET_KEYS)
-        if extra:
-            raise ValueError(f"{where}: unknown keys {sorted(extra)} (known: {', '.join(_DATASET_KEYS)})")
+    for where, entry in tables(entries, path, "dataset", _DATASET_KEYS):
         for key in ("data", "model"):
             if not isinstance(entry.get(key), str):
                 raise ValueError(f"{where}.{key}: give the {'measurement' if key == 'data' else 'sample model'} file's path")

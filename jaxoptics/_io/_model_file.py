@@ -88,11 +88,8 @@ def _param(v, where):
 
 def material_of(v, where: str, base: Path) -> Dispersion:
     """The material a TOML value describes (the forms of this module's docstring); `where` names
-    the key in errors, `base` the folder files are relative to."""
-    try:
-        return _material(v, where, base)
-    except _Err as e:
-        raise ValueError(str(e)) from None
+    the key in errors (a `ValueError`), `base` the folder files are relative to."""
+    return _material(v, where, base)
 
 
 def _material(v, where, base: Path):
@@ -199,6 +196,21 @@ def _instrument(v):
         return Instrument(**kw)
     except (TypeError, ValueError) as e:
         raise _Err(f"instrument: {e}") from None
+
+
+def tables(entries: list, path: Path, name: str, known) -> list[tuple[str, dict]]:
+    """The `[[name]]` tables of a TOML file as `(where, table)` pairs (`where` names the file and
+    the table, `name[i]`, for errors), each checked to be a table whose keys are among `known`."""
+    out = []
+    for i, entry in enumerate(entries):
+        where = f"{path}: {name}[{i}]"
+        if not isinstance(entry, dict):
+            raise ValueError(f"{where}: use [[{name}]] tables")
+        extra = set(entry) - set(known)
+        if extra:
+            raise ValueError(f"{where}: unknown keys {sorted(extra)} (known: {', '.join(known)})")
+        out.append((where, entry))
+    return out
 
 
 def read_toml(path: Path) -> dict:

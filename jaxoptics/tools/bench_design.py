@@ -30,6 +30,8 @@ import time
 
 import numpy as np
 
+from .bench_stack import numpy_stack
+
 NH, NL, NS = 2.1, 1.46, 1.52
 LAYERS = 24
 LO, HI = 10.0, 250.0
@@ -56,30 +58,11 @@ def problem(n, layers):
 
 
 def numpy_R(d, wl, ang_deg):
-    """Unpolarized R of the alternating stack with thicknesses `d` at every point: the
-    characteristic-matrix method (Macleod, ch. 2), vectorized over the points."""
-    L = len(d)
-    n = np.array([1.0] + [NH if j % 2 == 0 else NL for j in range(L)] + [NS])
-    s2 = np.sin(np.radians(ang_deg)) ** 2
-    cos = np.sqrt(1 - s2[None, :] / n[:, None] ** 2 + 0j)  # (L, P)
-    out = 0.0
-    for pol in ("s", "p"):
-        eta = n[:, None] * cos if pol == "s" else n[:, None] / cos
-        m11 = np.ones_like(wl, complex)
-        m12 = np.zeros_like(wl, complex)
-        m21 = np.zeros_like(wl, complex)
-        m22 = np.ones_like(wl, complex)
-        for j in range(1, L + 1):
-            delta = 2 * np.pi * n[j] * d[j - 1] * cos[j] / wl
-            c, s = np.cos(delta), np.sin(delta)
-            e = eta[j]
-            a11, a12, a21, a22 = c, 1j * s / e, 1j * e * s, c
-            m11, m12, m21, m22 = m11 * a11 + m12 * a21, m11 * a12 + m12 * a22, m21 * a11 + m22 * a21, m21 * a12 + m22 * a22
-        B = m11 + m12 * eta[-1]
-        C = m21 + m22 * eta[-1]
-        r = (eta[0] * B - C) / (eta[0] * B + C)
-        out = out + np.abs(r) ** 2 / 2
-    return out
+    """Unpolarized R of the alternating stack with thicknesses `d` at every point: the `stack`
+    section's vectorized NumPy characteristic matrices (`bench_stack.numpy_stack`)."""
+    n = np.array([1.0] + [NH if j % 2 == 0 else NL for j in range(len(d))] + [NS], complex)
+    out = numpy_stack(n, np.asarray(d, float), wl, np.cos(np.radians(ang_deg)))
+    return (out["R_s"] + out["R_p"]) / 2
 
 
 def tmm_R(d, wl, ang_deg):
