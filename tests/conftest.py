@@ -1,16 +1,22 @@
 import gc
 import os
 
-# XLA's CPU backend compiles with its classic elemental emitters instead of the fusion emitters:
-# the same programs compile in about half the time and run as fast (the stack's 10-layer kernel
-# and its gradient, 1e5 points: 525 and 813-882 ns per point either way), and elementary functions
-# give bit-identical results; composite kernels differ by rounding (float64 R to 3e-14 relative),
-# as they would on another processor. Compiling is most of the suite's time. Set before JAX starts
-# its backend, and inherited by the subprocesses the suite starts (notebooks, command line, bench);
-# `test_cli.py::test_kernels_under_xla_default_emitters` runs the kernels under XLA's defaults.
-XLA_FLAG = "--xla_cpu_use_fusion_emitters=false"
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {XLA_FLAG}".strip()
+# The suite compiles for a short compile, not for speed: XLA's CPU backend with its classic
+# elemental emitters instead of the fusion emitters (the same programs compile in about half the
+# time and run as fast: the stack's 10-layer kernel and its gradient, 1e5 points, 525 and 813-882
+# ns per point either way), and LLVM's optimization level 0, the options the fits already choose
+# for small problems (`jaxoptics._runtime._options.QUICK_COMPILE`): compiling is most of the
+# suite's time, and level 0 takes a third of it off (test_stack.py and test_gradients.py: 343 s
+# of test time at the default level, 241 s at level 0). Elementary functions give bit-identical
+# results; composite kernels differ by rounding (float64 R to 3e-14 relative), as they would on
+# another processor. Set before JAX starts its backend, and inherited by the subprocesses the suite
+# starts (notebooks, command line, bench). Users run XLA's defaults: `test_cli.py::
+# test_kernels_under_xla_default_emitters` runs the kernels under them, and the stress test, whose
+# accuracy limits in ulps are documented for the defaults, runs its sweep in a process with the
+# default optimization level.
+SUITE_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
+_given = os.environ.get("XLA_FLAGS", "").split()
+os.environ["XLA_FLAGS"] = " ".join(_given + [f for f in SUITE_FLAGS if f.split("=")[0] not in " ".join(_given)])
 
 import jax  # noqa: E402 (after XLA_FLAGS)
 import pytest  # noqa: E402
@@ -42,14 +48,25 @@ def _session_config():
             jax.config.update(key, value)
 
 
+# Compiled programs a pytest worker keeps before it drops them (see `_free_compiled_programs`).
+MAX_MAPPINGS = 25_000
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_programs():
-    """Drop every compiled program after each test module. XLA's CPU executables each hold many
-    memory mappings (their code is linked as many small objects: the thin-film part of the
-    stress test alone leaves about 6,800 and peaks near 10,900), and a pytest worker that keeps
-    every program of the suite alive runs into the kernel's limit on mappings per process
-    (`vm.max_map_count`, 65,530 by default), where the next compilation's `mmap` fails and XLA
-    crashes."""
+    """After a test module, drop every compiled program if the worker holds many. XLA's CPU
+    executables each hold many memory mappings (their code is linked as many small objects: the
+    thin-film part of the stress test alone leaves about 6,800 and peaks near 10,900), and a pytest
+    worker that keeps every program of the suite alive runs into the kernel's limit on mappings per
+    process (`vm.max_map_count`, 65,530 by default), where the next compilation's `mmap` fails and
+    XLA crashes. Below `MAX_MAPPINGS` the programs stay: the next modules on the worker reuse those
+    they share (the same fit of the same model on the same grid) instead of compiling them again."""
     yield
-    jax.clear_caches()
-    gc.collect()
+    try:
+        with open("/proc/self/maps") as f:
+            mappings = sum(1 for _ in f)
+    except OSError:  # no /proc (macOS): drop them after every module
+        mappings = MAX_MAPPINGS + 1
+    if mappings > MAX_MAPPINGS:
+        jax.clear_caches()
+        gc.collect()

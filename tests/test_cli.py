@@ -118,9 +118,10 @@ print("DEFAULTS OK")
 
 @pytest.mark.slow
 def test_kernels_under_xla_default_emitters():
-    """The suite compiles with XLA's classic CPU emitters (`conftest.py`); users run XLA's defaults.
-    Here, in a process with the defaults: stacks with and without an incoherent layer against
+    """The suite compiles with XLA's classic CPU emitters at optimization level 0 (`conftest.py`);
+    users run XLA's defaults. Here, in a process with the defaults: stacks with and without an incoherent layer against
     tmm's `inc_tmm` (1e-10), finite gradients, and the Fresnel reflectance against its closed form."""
-    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "xla_cpu_use_fusion_emitters" not in f)
+    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split()
+                     if "xla_cpu_use_fusion_emitters" not in f and "xla_backend_optimization_level" not in f)
     out = _run(["-c", _DEFAULT_EMITTERS], XLA_FLAGS=flags)
     assert "DEFAULTS OK" in out.stdout

@@ -4,20 +4,37 @@ asserting the documented accuracy and that no value or gradient is NaN or infini
 domain. The full sweep is `python -m jaxoptics stress` (docs/generated/stress.md).
 
 The sweep runs once, in `test_reduced_sweep`, which checks each property below on its report and
-names every one that fails (a session fixture would run the sweep once per pytest-xdist worker)."""
+names every one that fails (a session fixture would run the sweep once per pytest-xdist worker).
+It runs in a process of its own with XLA's default optimization level: the accuracy limits below
+are documented for the programs users compile, and the suite's own processes compile at level 0
+(`conftest.py`), where code generation differs (there, float32 `refract[degreve]` misses its
+invariants' 16-ulp limit: 9.7e-6 relative)."""
+
+import os
+import pickle
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
-from jaxoptics.tools.stress import run
-
 SWEEP = 20_000
+
+_SWEEP = """import pickle, sys
+from jaxoptics.tools.stress import run
+report = run(n={n}, out_dir=sys.argv[1], mp_samples=150, mitsuba=False, quiet=True, stack_media=(8,))
+with open(sys.argv[1] + "/report.pickle", "wb") as f:
+    pickle.dump(report, f)
+"""
 
 
 @pytest.mark.slow
 def test_reduced_sweep(tmp_path):
-    report = run(n=SWEEP, out_dir=tmp_path, mp_samples=150, mitsuba=False, quiet=True,
-                 stack_media=(8,))
+    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "xla_backend_optimization_level" not in f)
+    subprocess.run([sys.executable, "-c", _SWEEP.format(n=SWEEP), str(tmp_path)], env={**os.environ, "XLA_FLAGS": flags},
+                   check=True, timeout=1800)
+    with open(tmp_path / "report.pickle", "rb") as f:
+        report = pickle.load(f)
     failed = []
     for check in (check_no_nan_or_inf_in_values_or_gradients, check_sweep_size_and_categories,
                   check_accuracy_against_backward_bound, check_invariants, check_stack_section):
