@@ -70,3 +70,15 @@ def _free_compiled_programs():
     if mappings > MAX_MAPPINGS:
         jax.clear_caches()
         gc.collect()
+
+
+# The test modules of the longest single tests (the notebooks, the stress sweep, the bench's
+# sections, the multi-process and multi-device runs: each 10 s to 2 min), collected first: pytest-
+# xdist hands tests out in collection order, so they start while both workers have the rest of the
+# suite still to share, instead of one worker running them alone at the end.
+LONGEST_FIRST = ("test_notebooks.py", "test_stress.py", "test_bench.py", "test_distributed.py", "test_sharding.py")
+
+
+def pytest_collection_modifyitems(items):
+    rank = lambda item: LONGEST_FIRST.index(item.path.name) if item.path.name in LONGEST_FIRST else len(LONGEST_FIRST)
+    items.sort(key=rank)  # stable: the order within each module, and of the other modules, stays

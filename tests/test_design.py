@@ -39,6 +39,29 @@ def test_quarter_wave_mirror_refines_to_the_quarter_wave_stack_and_its_analytic_
     assert d.layers == 5 and d.names[0] == "layer1.thickness_nm" and d["layer2.thickness_nm"] == pytest.approx(quarter[1], rel=1e-5)
 
 
+def test_two_layer_v_coat_refines_to_its_closed_form():
+    """Zero reflectance at one wavelength with two layers (a V-coat) has two exact solutions: from
+    the characteristic matrices, Y = C / B = n0 gives tan^2 d1 = (ns - n0) n1^2 (n0 ns - n2^2) /
+    ((n1^2 ns - n0 n2^2) (n1^2 - n0 ns)) and tan d2 = tan d1 n2 (n1^2 - n0 ns) / (n1 (n0 ns - n2^2))
+    for the phase thicknesses d1 (outer layer) and d2. Starts near each solution refine to it. (R
+    is quadratic in the thicknesses' deviation at a zero, so R to 1e-12 places them to about 1e-6.)"""
+    n0, n1, n2, wl0 = 1.0, 1.38, 2.1, 550.0
+    t1 = math.sqrt((NS - n0) * n1**2 * (n0 * NS - n2**2) / ((n1**2 * NS - n0 * n2**2) * (n1**2 - n0 * NS)))
+    solutions = []
+    for sign in (1, -1):
+        d1 = math.atan(sign * t1) % math.pi
+        d2 = math.atan(sign * t1 * n2 * (n1**2 - n0 * NS) / (n1 * (n0 * NS - n2**2))) % math.pi
+        solutions.append([d1 * wl0 / (2 * math.pi * n1), d2 * wl0 / (2 * math.pi * n2)])
+    target = jo.Target("R", wl0, 0.0, tolerance=1e-3)
+    for exact in solutions:
+        assert _tmm_R((n1, n2), exact, wl0) < 1e-28  # the closed form, checked by tmm
+        start = jo.Sample((jo.Layer(n1, jo.Free(0.9 * exact[0], 1.0, 300.0)), jo.Layer(n2, jo.Free(1.1 * exact[1], 1.0, 300.0))), NS)
+        d = jo.design(start, [target], starts=1)
+        np.testing.assert_allclose(d.values, exact, rtol=1e-5)
+        assert _tmm_R((n1, n2), d.values, wl0) < 1e-12
+        assert d.merit == pytest.approx(_tmm_R((n1, n2), d.values, wl0) / 1e-3, rel=1e-6, abs=1e-15)
+
+
 @pytest.mark.parametrize("textbook", ["quarter-quarter", "quarter-half-quarter"])
 def test_anti_reflection_designs_agree_with_tmm_and_improve_on_the_textbook(textbook):
     """Mean reflectance over 400-700 nm on glass: the merit of the textbook design equals tmm's,
