@@ -4,6 +4,8 @@ anti-reflection coatings, finite differences of the merit (needle function) and 
 (group delay and its dispersion)."""
 
 import math
+import subprocess
+import sys
 
 import jax
 import numpy as np
@@ -290,7 +292,8 @@ def test_color_targets_equal_colour_science():
     """Chromaticity and CIELAB of a coating's reflectance and transmittance under D65 and A equal
     colour-science's (`sd_to_XYZ` by integration with the observer and illuminant on the same 5 nm
     grid, `XYZ_to_Lab` with the illuminant's white)."""
-    import colour
+    with np.printoptions():  # (its import sets NumPy's legacy printing for the whole process)
+        import colour
 
     sample = jo.Sample((jo.Layer(2.1, 95.0), jo.Layer(1.46, 160.0), jo.Layer(2.1, 70.0)), NS)
     grid = np.arange(380.0, 781.0, 5.0)
@@ -327,3 +330,14 @@ def test_gradual_evolution_goes_on_where_needle_rounds_stall():
     assert grown.layers > 2 and grown.merit < plain.merit / 3
     assert grown.merit == pytest.approx(min(grown.history), rel=1e-9)
     assert np.max(grown.history) > plain.merit  # a thickened design is worse before needles go in
+
+
+def test_colour_targets_leave_numpy_printing_as_it_was():
+    """colour-science sets NumPy's legacy print options (12 digits in `str` of a float64) when it
+    is imported; evaluating a colour target imports it without changing the user's options (a file
+    written with `str` of its values keeps every digit)."""
+    code = ("import numpy as np, jaxoptics as jo; "
+            "jo.target_values(jo.Sample((jo.Layer(2.1, 95.0),), 1.52), [jo.Target('R_x', np.arange(380.0, 781.0, 5.0), 0.3)]); "
+            "print(np.get_printoptions()['legacy'], str(np.float64(23.83255325383033)))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300).stdout.split()
+    assert out == ["False", "23.83255325383033"], out

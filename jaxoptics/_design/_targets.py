@@ -202,7 +202,8 @@ def _color_weights(wl, illuminant):
     a spectrum at `wl` (CIE 15 integration, `k` making Y = 100 for a perfect reflector); row 3
     holds the white point (Xn, Yn, Zn) in its first three entries."""
     try:
-        import colour
+        with np.printoptions():  # colour-science sets NumPy's legacy printing on import: the user's options stay
+            import colour
     except ImportError:
         raise ValueError("colour targets need colour-science (pip install colour-science, or jaxoptics[colour])") from None
     if illuminant not in colour.SDS_ILLUMINANTS:
