@@ -121,7 +121,8 @@ def test_kernels_under_xla_default_emitters():
     """The suite compiles with XLA's classic CPU emitters at optimization level 0 (`conftest.py`);
     users run XLA's defaults. Here, in a process with the defaults: stacks with and without an incoherent layer against
     tmm's `inc_tmm` (1e-10), finite gradients, and the Fresnel reflectance against its closed form."""
-    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split()
-                     if "xla_cpu_use_fusion_emitters" not in f and "xla_backend_optimization_level" not in f)
+    from helpers import xla_flags_without
+
+    flags = xla_flags_without("xla_cpu_use_fusion_emitters", "xla_backend_optimization_level")
     out = _run(["-c", _DEFAULT_EMITTERS], XLA_FLAGS=flags)
     assert "DEFAULTS OK" in out.stdout

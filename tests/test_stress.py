@@ -30,7 +30,9 @@ with open(sys.argv[1] + "/report.pickle", "wb") as f:
 
 @pytest.mark.slow
 def test_reduced_sweep(tmp_path):
-    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "xla_backend_optimization_level" not in f)
+    from helpers import xla_flags_without
+
+    flags = xla_flags_without("xla_backend_optimization_level")
     subprocess.run([sys.executable, "-c", _SWEEP.format(n=SWEEP), str(tmp_path)], env={**os.environ, "XLA_FLAGS": flags},
                    check=True, timeout=1800)
     with open(tmp_path / "report.pickle", "rb") as f:
