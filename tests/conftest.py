@@ -27,7 +27,10 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
+import mpmath as mp  # noqa: E402
 from hypothesis import settings  # noqa: E402 (after the config updates above)
+
+from jaxoptics.tools import mpref  # noqa: E402
 
 # Deterministic property tests: CI runs the same examples every time (no flaky reds).
 settings.register_profile("ci", derandomize=True, max_examples=200, deadline=None, print_blob=True)
@@ -40,8 +43,11 @@ _SESSION_CONFIG = {k: getattr(jax.config, k) for k in ("jax_enable_x64", "jax_nu
 @pytest.fixture(autouse=True)
 def _session_config():
     """Every test starts with the session's configuration, and a test that changes it (float32
-    runs with `jax_enable_x64` off) cannot leak the change into the tests that pytest-xdist
-    schedules after it on the same worker."""
+    runs with `jax_enable_x64` off; mpmath's global precision, which some oracles set for a
+    quadrature) cannot leak the change into the tests that pytest-xdist schedules after it on the
+    same worker. mpmath starts at the oracles' precision (`mpref.DIGITS`, 50 digits): tests do
+    their own mpmath arithmetic (derivatives by `mp.diff`, closed forms) at the global precision."""
+    mp.mp.dps = mpref.DIGITS
     yield
     for key, value in _SESSION_CONFIG.items():
         if getattr(jax.config, key) != value:
@@ -73,9 +79,9 @@ def _free_compiled_programs():
 
 
 # The test modules of the longest single tests (the notebooks, the stress sweep, the bench's
-# sections, the multi-process and multi-device runs: each 10 s to 2 min), collected first: pytest-
-# xdist hands tests out in collection order, so they start while both workers have the rest of the
-# suite still to share, instead of one worker running them alone at the end.
+# sections, the multi-process and multi-device runs: each 10 s to 2 min), collected first: they
+# start while the other worker has its half of the suite to run and then tests to take over
+# (`--dist worksteal`, pyproject.toml), instead of one of them running alone at the end.
 LONGEST_FIRST = ("test_notebooks.py", "test_stress.py", "test_bench.py", "test_distributed.py", "test_sharding.py")
 
 

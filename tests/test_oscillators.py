@@ -18,11 +18,11 @@ HC = 1.2398419843320026
 def _kk(eps2, E, breaks):
     """eps1 - eps_inf = (2/pi) P int_0^inf x eps2(x) / (x^2 - E^2) dx at 20 digits (the pole
     subtracted: P int_0^inf dx / (x^2 - E^2) = 0)."""
-    mp.mp.dps = 20
-    E = mp.mpf(E)
-    fE = E * eps2(E)
-    pts = sorted({mp.mpf(0), E} | {mp.mpf(b) for b in breaks if b > 0})
-    return 2 / mp.pi * mp.quad(lambda x: (x * eps2(x) - fE) / (x * x - E * E), pts + [mp.inf])
+    with mp.workdps(20):
+        E = mp.mpf(E)
+        fE = E * eps2(E)
+        pts = sorted({mp.mpf(0), E} | {mp.mpf(b) for b in breaks if b > 0})
+        return 2 / mp.pi * mp.quad(lambda x: (x * eps2(x) - fE) / (x * x - E * E), pts + [mp.inf])
 
 
 def _eps(model, E, dtype=np.float64):

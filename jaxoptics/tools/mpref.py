@@ -8,10 +8,28 @@ binary floating-point numbers.
 
 from __future__ import annotations
 
+import functools
+
 import mpmath as mp
 import numpy as np
 
-mp.mp.dps = 50
+# The references' working precision. Each function below computes at it whatever precision the
+# caller's mpmath context holds (a caller at 20 digits would otherwise get a reference good to far
+# less than float64 near a cancellation: b - a = 1e-9 keeps 11 of 20 digits). Importing this module
+# also sets it as mpmath's global precision, for the callers' own mpmath arithmetic on the results.
+DIGITS = 50
+mp.mp.dps = DIGITS
+
+
+def _at_digits(f):
+    """`f` evaluated at `DIGITS` decimal digits."""
+
+    @functools.wraps(f)
+    def wrapped(*args, **kwargs):
+        with mp.workdps(DIGITS):
+            return f(*args, **kwargs)
+
+    return wrapped
 
 
 def mpf(x):
@@ -23,6 +41,7 @@ def mpc(x):
     return mp.mpc(x.real, x.imag)
 
 
+@_at_digits
 def fresnel_ref(c, eta1, eta2):
     """Dict of r_s, r_p, t_s, t_p (mpc) and R_s, R_p, T_s, T_p (mpf) at one point."""
     c = abs(c)
@@ -50,6 +69,7 @@ def fresnel_ref(c, eta1, eta2):
     return dict(r_s=r_s, r_p=r_p, t_s=t_s, t_p=t_p, R_s=abs(r_s) ** 2, R_p=abs(r_p) ** 2, T_s=T_s, T_p=T_p)
 
 
+@_at_digits
 def refract_ref(i, n, eta1, eta2):
     """de Greve's refraction in mpmath; i, n sequences of 3 mpf, normalized here (as `refract`
     does: only directions matter). Returns (t, tir)."""
@@ -72,6 +92,7 @@ def spacing(x, dtype):
     return float(np.spacing(np.abs(np.asarray(x, dtype))))
 
 
+@_at_digits
 def fresnel_specials(args, j, lo, hi):
     """Points inside [lo, hi] of input j where the Fresnel functions have a cusp or an interior
     extremum: the critical angle and Brewster's angle. Near the critical angle with a large index
@@ -94,6 +115,7 @@ def fresnel_specials(args, j, lo, hi):
     return [p for p in pts if mp.im(p) == 0 and lo <= mp.re(p) <= hi]
 
 
+@_at_digits
 def backward_bound(f, args, dtype, ulps=2, specials=None, nonneg=()):
     """Sum over inputs of the largest change of f when that input moves by up to +-ulps ulps.
 
@@ -141,11 +163,13 @@ _NAMES = {
 }
 
 
+@_at_digits
 def _schlick(c, a, b):
     r0 = ((a - b) / (a + b)) ** 2
     return r0 + (1 - r0) * (1 - abs(c)) ** 5
 
 
+@_at_digits
 def _schlick_tir(c, a, b):
     c = abs(c)
     if a > b:
@@ -154,6 +178,12 @@ def _schlick_tir(c, a, b):
             return mp.mpf(1)
         c = mp.sqrt(k) / b
     return _schlick(c, a, b)
+
+
+@_at_digits
+def _fresnel_complex(c, a, b):
+    """The unpolarized reflectance at the complex index `b (1 + 0.1 i)`."""
+    return _NAMES["fresnel"](fresnel_ref(c, a, b * mp.mpc(1, 0.1)))
 
 
 def scalar_ref(name):
@@ -166,7 +196,7 @@ def scalar_ref(name):
     if name == "schlick_tir":
         return _schlick_tir
     if name.startswith("fresnel, complex"):
-        return lambda c, a, b: _NAMES["fresnel"](fresnel_ref(c, a, b * mp.mpc(1, 0.1)))
+        return _fresnel_complex
     raise KeyError(name)
 
 
