@@ -41,6 +41,33 @@ def test_quarter_wave_mirror_refines_to_the_quarter_wave_stack_and_its_analytic_
     assert d.layers == 5 and d.names[0] == "layer1.thickness_nm" and d["layer2.thickness_nm"] == pytest.approx(quarter[1], rel=1e-5)
 
 
+def test_quarter_wave_mirror_stop_band_has_its_closed_form_edges_and_decay():
+    """The stop band of a quarter-wave stack (H L)^N at normal incidence, in g = lambda0 / lambda,
+    from the period's characteristic matrix (Macleod, ch. 7): the Bloch phase obeys
+    `cos(K Lambda) = a(g) = cos^2(pi g / 2) - (rho + 1/rho) sin^2(pi g / 2) / 2`, `rho = nH / nL`, so
+    the band is `|a| > 1`, `|g - 1| < (2/pi) asin((nH - nL) / (nH + nL))`, and inside it each
+    period multiplies T by `exp(-2 arccosh|a|)`. The stack's T of 30 and 60 periods decays at that
+    rate inside the band (to 1e-8: the finite-N correction is `exp(-2 N arccosh|a|)`), and outside
+    the band no number of periods from 10 to 40 takes T below 0.1."""
+    nH, nL, wl0 = 2.3, 1.46, 600.0
+    half_width = 2 / math.pi * math.asin((nH - nL) / (nH + nL))
+    rho = nH / nL
+    a = lambda g: np.cos(np.pi / 2 * g) ** 2 - (rho + 1 / rho) / 2 * np.sin(np.pi / 2 * g) ** 2
+    np.testing.assert_allclose(np.abs(a(1 + half_width * np.array([-1.0, 1.0]))), 1.0, rtol=1e-14)  # the edges
+
+    def T(periods, g):  # every stack 60 periods long, those beyond `periods` of zero thickness (no-ops): one program
+        n = jax.numpy.asarray([1.0] + [nH, nL] * 60 + [NS], np.complex128)
+        d = jax.numpy.asarray([wl0 / (4 * nH), wl0 / (4 * nL)] * periods + [0.0, 0.0] * (60 - periods))
+        wl = jax.numpy.asarray(wl0 / g)
+        return np.asarray(jo.stack(n, d, wl, jax.numpy.ones_like(wl)).T_s)
+
+    inside = 1 + half_width * np.array([-0.8, -0.5, 0.0, 0.3, 0.8])
+    rate = np.log(T(30, inside) / T(60, inside)) / (2 * 30)
+    np.testing.assert_allclose(rate, np.arccosh(np.abs(a(inside))), rtol=1e-8)
+    outside = 1 + half_width * np.array([-1.5, -1.2, 1.1, 1.3, 1.5])
+    assert np.min([T(N, outside) for N in range(10, 41, 3)]) > 0.1
+
+
 def test_two_layer_v_coat_refines_to_its_closed_form():
     """Zero reflectance at one wavelength with two layers (a V-coat) has two exact solutions: from
     the characteristic matrices, Y = C / B = n0 gives tan^2 d1 = (ns - n0) n1^2 (n0 ns - n2^2) /
