@@ -176,20 +176,53 @@ def test_group_delay_and_its_dispersion_equal_finite_differences_of_the_phase():
 
 
 @pytest.mark.slow
-def test_needle_synthesis_lowers_the_merit_within_the_constraints():
+def test_needle_synthesis_lowers_the_merit_within_the_constraints(monkeypatch):
     """From one thick low-index layer on glass, needle rounds with two candidates lower the
     broadband anti-reflection merit several times over; the result keeps the minimum thickness,
-    the layer budget, and has no two neighbours of one material."""
+    the layer budget, and has no two neighbours of one material; the same with two needles per
+    round, where a round inserts two."""
+    from jaxoptics._design import _layers
+
     start = jo.Sample((jo.Layer(1.46, jo.Free(500.0, 0.0)),), NS)
     targets = [jo.Target("R", np.linspace(450.0, 650.0, 11), 0.0, tolerance=0.01)]
-    d = jo.design(start, targets, needle=True, materials=[1.46, 2.1], max_layers=10, min_thickness_nm=5.0)
-    assert d.history[0] == pytest.approx(jo.merit(start, targets), rel=1e-6) or d.history[0] < jo.merit(start, targets)
-    assert np.all(np.diff(d.history[:-1]) < 0)
-    assert d.merit < d.history[0] / 3
-    assert 3 <= d.layers <= 10 and np.all(d.values >= 5.0 - 1e-9)
-    ns = [float(m.n) for m in d.materials]
-    assert all(a != b for a, b in zip(ns, ns[1:]))
-    assert d.merit == pytest.approx(jo.merit(d.sample, targets), rel=1e-9)
+    for needles in (1, 2):
+        d = jo.design(start, targets, needle=True, materials=[1.46, 2.1], max_layers=10, min_thickness_nm=5.0,
+                      needles=needles)
+        assert d.history[0] == pytest.approx(jo.merit(start, targets), rel=1e-6) or d.history[0] < jo.merit(start, targets)
+        assert np.all(np.diff(d.history[:-1]) < 0)
+        assert d.merit < d.history[0] / 3
+        assert 3 <= d.layers <= 10 and np.all(d.values >= 5.0 - 1e-9)
+        ns = [float(m.n) for m in d.materials]
+        assert all(a != b for a, b in zip(ns, ns[1:]))
+        assert d.merit == pytest.approx(jo.merit(d.sample, targets), rel=1e-9)
+    # needles inserted in two rounds: one per round, or more than one in a round with needles=2
+    inserted = []
+    insert = _layers.insert
+    monkeypatch.setattr(_layers, "insert", lambda *a, **k: inserted.append(a[1]) or insert(*a, **k))
+    for needles, count in ((1, 2), (2, 3)):
+        inserted.clear()
+        jo.design(start, targets, needle=True, materials=[1.46, 2.1], max_layers=10, max_rounds=2, needles=needles)
+        assert len(inserted) >= count and (needles > 1 or len(inserted) == 2), (needles, inserted)
+
+
+def test_needle_sites_are_the_most_negative_local_minima_over_depth():
+    """Several needles per round go where the best candidate's needle function has its most
+    negative local minima over depth, each with the candidate that is best there; a depth where no
+    candidate is allowed or the slope is not below the threshold is never chosen; the first site
+    is the global minimum (the single-needle choice)."""
+    from jaxoptics._design._design import needle_sites
+
+    P = np.array([[0.0, -1.0], [-2.0, -3.0], [-1.0, -0.5], [-4.0, 9.0], [-5.0, -6.0], [-0.5, -7.0], [0.0, 0.0],
+                  [-0.1, -0.2], [1.0, 1.0]])
+    ok = np.ones(P.shape, bool)
+    ok[5, 1] = False  # -7 not allowed there (the layer around it is of that material)
+    # best per depth: -1, -3, -1, -4, -6, -0.5, 0, -0.2, 1: minima at depths 1 (-3), 4 (-6), 7 (-0.2)
+    assert needle_sites(P, ok, 5, -0.1) == [(4, 1), (1, 1), (7, 1)]
+    assert needle_sites(P, ok, 2, -0.1) == [(4, 1), (1, 1)]
+    assert needle_sites(P, ok, 5, -1.0) == [(4, 1), (1, 1)]  # -0.2 is not below the threshold
+    k, c = np.unravel_index(np.argmin(np.where(ok, P, np.inf)), P.shape)
+    assert needle_sites(P, ok, 1, 0.0) == [(int(k), int(c))]
+    assert needle_sites(P, ok, 3, -10.0) == []
 
 
 @pytest.mark.slow

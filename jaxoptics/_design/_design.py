@@ -12,7 +12,9 @@ The method:
 2. **Needle synthesis** (`needle=True`): the needle function of every candidate material at every
    sampled depth (`jaxoptics._design._needle`) in one gradient pass; a needle of the best material
    at the best depth (the most negative derivative) is inserted, a quarter of the depth spacing
-   thick; the design is refined with lower bounds of zero; free layers thinner than 0.1 nm are
+   thick (with `needles=k`, at the `k` depths where the needle function has its most negative
+   local minima, each of the best material there: the deepest inserted first, so that the depths
+   above stay where they were sampled); the design is refined with lower bounds of zero; free layers thinner than 0.1 nm are
    removed and neighbours of one material merged; and again, until no needle lowers the merit (a needle derivative below `1e-4 MF^2` per spacing),
    a round lowers it by less than `1e-3` of itself, the next needle would exceed `max_layers`
    slots, or the total physical thickness reaches `max_total_nm`. A last refinement keeps every
@@ -121,7 +123,7 @@ def _starts(s: _layers.Slots, starts, wl_max, rng) -> np.ndarray:
 def design(sample: Sample, targets: Sequence[Target], *, starts: Any = 1, needle: bool = False, materials: Sequence[Any] | None = None,
            max_layers: int | None = None, min_thickness_nm: float = 0.0, max_thickness_nm: float | None = None,
            max_total_nm: float | None = None, max_rounds: int = 40, max_steps: int = 200,
-           robust: _errors.ThicknessErrors | None = None, gradual: float = 0.0, seed: int = 0,
+           robust: _errors.ThicknessErrors | None = None, gradual: float = 0.0, needles: int = 1, seed: int = 0,
            progress: bool = False) -> Design:
     """Design the free thicknesses of `sample` to meet `targets` (see the module docstring for the
     method).
@@ -143,6 +145,8 @@ def design(sample: Sample, targets: Sequence[Target], *, starts: Any = 1, needle
     - `robust`: `ThicknessErrors` whose mean merit is minimized instead of the merit.
     - `gradual`: gradual evolution: when needle rounds stall, the free layers are made this fraction
       thicker and needle rounds go on (0, the default, stops at the first stall).
+    - `needles`: needles inserted per round, at the most negative local minima of the needle
+      function over depth (fewer where fewer minima lower the merit or the layer budget is short).
     - `seed`: of the random starts. `progress`: print a line per needle round.
 
     **Returns:** a `Design`.
@@ -161,6 +165,7 @@ def design(sample: Sample, targets: Sequence[Target], *, starts: Any = 1, needle
     if budget is not None:
         _check_int(budget, "max_layers", 1)
     max_steps = _check_int(max_steps, "max_steps", 1)
+    needles = _check_int(needles, "needles", 1)
     if isinstance(gradual, bool) or not isinstance(gradual, (int, float)) or not 0 <= gradual < 10:
         raise ValueError(f"design: gradual must be a number in [0, 10), got {gradual!r}")
     # during needle rounds, layers may thin to zero (and are removed); the last refinement applies min_thickness_nm
@@ -179,7 +184,7 @@ def design(sample: Sample, targets: Sequence[Target], *, starts: Any = 1, needle
     if needle:
         cand_ids = [_layers.Slots.index(s, c) for c in cands]
         s, history = _synthesize(problem, s, cand_ids, history, float(wl_all.min()) * _needle.NEEDLE_SPACING,
-                                 _THINNEST, max_total_nm, max_rounds, max_steps, progress, gradual)
+                                 _THINNEST, max_total_nm, max_rounds, max_steps, progress, gradual, needles)
         s = _within_limits(problem, s, min_thickness_nm, max_thickness_nm, max_steps)
         history.append(math.sqrt(_refine.merit2(problem, s)))
     return _result(s, sample, history, merits)
@@ -204,15 +209,33 @@ def _within_limits(problem, s, min_t, max_t, max_steps):
     return drop if m_drop < m_keep else keep
 
 
-def _needle_step(problem, s, cand_ids, spacing, thinnest, max_steps):
-    """One needle round: the best needle inserted and the design refined and cleaned up, with its
-    merit; None where no needle lowers the merit."""
-    z, P, ok, mf2 = _needle.needle_function(problem, s, cand_ids, spacing)
+def needle_sites(P, ok, count, threshold):
+    """`[(depth index, candidate index)]` of up to `count` needles, most negative first: the depths
+    where the best candidate's needle function `min_c P[k, c]` (over candidates allowed there,
+    `ok`) is a local minimum along depth (not above either neighbour) and below `threshold`, each
+    with that best candidate. The first is the global minimum of `P` (the single-needle choice)."""
     P = np.where(ok, P, np.inf)
-    k, c = np.unravel_index(int(np.argmin(P)), P.shape)
-    if not P[k, c] * spacing < -_MIN_SLOPE * mf2:
+    best = np.min(P, axis=1)
+    cand = np.argmin(P, axis=1)
+    padded = np.concatenate([[np.inf], best, [np.inf]])
+    local = (best <= padded[:-2]) & (best <= padded[2:]) & (best < threshold)
+    ks = np.flatnonzero(local)
+    ks = ks[np.argsort(best[ks], kind="stable")][:count]
+    return [(int(k), int(cand[k])) for k in ks]
+
+
+def _needle_step(problem, s, cand_ids, spacing, thinnest, max_steps, needles=1):
+    """One needle round: the best needle(s) inserted (`needle_sites`, as many as `needles` and
+    the free slots allow) and the design refined and cleaned up, with its merit; None where no
+    needle lowers the merit."""
+    z, P, ok, mf2 = _needle.needle_function(problem, s, cand_ids, spacing)
+    room = max(1, (s.size - s.used) // 2)  # each needle takes two slots (it splits a layer)
+    sites = needle_sites(P, ok, min(needles, room), -_MIN_SLOPE * mf2 / spacing)
+    if not sites:
         return None
-    trial = _layers.insert(s, float(z[k]), cand_ids[c], _NEEDLE_T * spacing, 0.0, math.inf)
+    trial = s
+    for k, c in sorted(sites, key=lambda kc: -z[kc[0]]):  # deepest first: the depths above are unchanged
+        trial = _layers.insert(trial, float(z[k]), cand_ids[c], _NEEDLE_T * spacing, 0.0, math.inf)
     D, m2, _ = _refine.refine(problem, trial, trial.d[None], max_steps)
     trial = _layers.cleanup(trial.replace(d=D[0]), thinnest)
     D, m2, _ = _refine.refine(problem, trial, trial.d[None], max_steps)
@@ -228,14 +251,15 @@ def _grow(problem, s, fraction):
     return grown, math.sqrt(_refine.merit2(problem, grown))
 
 
-def _synthesize(problem, s, cand_ids, history, spacing, thinnest, max_total, max_rounds, max_steps, progress, gradual):
+def _synthesize(problem, s, cand_ids, history, spacing, thinnest, max_total, max_rounds, max_steps, progress, gradual,
+                needles=1):
     """The needle rounds (module docstring, step 2), with gradual evolution where `gradual > 0`:
     the best slots found and the merit history."""
     best, best_mf = s, history[-1]
     mf, grown = best_mf, False
     for rnd in range(max_rounds):
         room = s.used + 2 <= s.size and (max_total is None or float(np.sum(s.d)) < max_total)
-        step = _needle_step(problem, s, cand_ids, spacing, thinnest, max_steps) if room else None
+        step = _needle_step(problem, s, cand_ids, spacing, thinnest, max_steps, needles) if room else None
         if step is not None and step[1] < mf * (1 - _MIN_GAIN):
             s, mf = step
             history.append(mf)

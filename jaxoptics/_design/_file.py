@@ -23,7 +23,7 @@ max_layers = 20
 ```
 
 `[design]` takes `starts`, `needle`, `materials`, `max_layers`, `min_thickness_nm`,
-`max_thickness_nm`, `max_total_nm`, `max_rounds`, `max_steps`, `gradual` and `seed`.
+`max_thickness_nm`, `max_total_nm`, `max_rounds`, `max_steps`, `gradual`, `needles` and `seed`.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from ._targets import Target
 _TARGET_KEYS = ("quantity", "wavelength_nm", "value", "tolerance", "angle_deg", "polarization", "kind", "weight")
 _OPTIONS = {"starts": int, "needle": bool, "materials": list, "max_layers": int, "min_thickness_nm": float,
             "max_thickness_nm": float, "max_total_nm": float, "max_rounds": int, "max_steps": int, "seed": int,
-            "gradual": float}
+            "gradual": float, "needles": int}
 
 
 def _wavelengths(v, where):

@@ -13,20 +13,22 @@ import functools
 import mpmath as mp
 import numpy as np
 
-# The references' working precision. Each function below computes at it whatever precision the
-# caller's mpmath context holds (a caller at 20 digits would otherwise get a reference good to far
-# less than float64 near a cancellation: b - a = 1e-9 keeps 11 of 20 digits). Importing this module
-# also sets it as mpmath's global precision, for the callers' own mpmath arithmetic on the results.
+# The references' working precision. Each function below computes at least at it whatever
+# precision the caller's mpmath context holds (a caller at 20 digits would otherwise get a reference
+# good to far less than float64 near a cancellation: b - a = 1e-9 keeps 11 of 20 digits), and at
+# the caller's where that is higher (`mp.diff` raises the precision to difference the function at
+# points closer than 50 digits resolve). Importing this module also sets it as mpmath's global
+# precision, for the callers' own mpmath arithmetic on the results.
 DIGITS = 50
 mp.mp.dps = DIGITS
 
 
 def _at_digits(f):
-    """`f` evaluated at `DIGITS` decimal digits."""
+    """`f` evaluated at `DIGITS` decimal digits, or at the caller's precision where higher."""
 
     @functools.wraps(f)
     def wrapped(*args, **kwargs):
-        with mp.workdps(DIGITS):
+        with mp.workdps(max(mp.mp.dps, DIGITS)):
             return f(*args, **kwargs)
 
     return wrapped
