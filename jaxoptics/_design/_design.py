@@ -224,12 +224,12 @@ def needle_sites(P, ok, count, threshold):
     return [(int(k), int(cand[k])) for k in ks]
 
 
-def _needle_step(problem, s, cand_ids, spacing, thinnest, max_steps, needles=1):
+def _needle_step(problem, s, cand_ids, spacing, thinnest, max_steps, needles):
     """One needle round: the best needle(s) inserted (`needle_sites`, as many as `needles` and
     the free slots allow) and the design refined and cleaned up, with its merit; None where no
     needle lowers the merit."""
     z, P, ok, mf2 = _needle.needle_function(problem, s, cand_ids, spacing)
-    room = max(1, (s.size - s.used) // 2)  # each needle takes two slots (it splits a layer)
+    room = (s.size - s.used) // 2  # each needle takes two slots (it splits a layer); `_synthesize` leaves room for one
     sites = needle_sites(P, ok, min(needles, room), -_MIN_SLOPE * mf2 / spacing)
     if not sites:
         return None
@@ -252,7 +252,7 @@ def _grow(problem, s, fraction):
 
 
 def _synthesize(problem, s, cand_ids, history, spacing, thinnest, max_total, max_rounds, max_steps, progress, gradual,
-                needles=1):
+                needles):
     """The needle rounds (module docstring, step 2), with gradual evolution where `gradual > 0`:
     the best slots found and the merit history."""
     best, best_mf = s, history[-1]
