@@ -163,6 +163,34 @@ def _cross(a, b):
     return jnp.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
 
 
+def _cross_plain(a, b):
+    return _cross(a, b)
+
+
+@jax.custom_jvp
+def _cross_exact(a, b):
+    """a x b with each component a_j b_k - a_k b_j from error-free products (`_two_prod`): within
+    an ulp of the exact cross product, the same bits in every fused loop that computes it (with or
+    without contraction). For nearly parallel vectors the plain form cancels (relative error up to
+    eps / sin of their angle), and XLA recomputes it in each loop that reads it, so two readers
+    could see copies that differ in their leading digits. Its derivative is the plain one's."""
+    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
+    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
+
+    def minus(u, v, w, z):
+        p, e = _two_prod(u, v)
+        q, f = _two_prod(w, z)
+        return (p - q) + (e - f)
+
+    return jnp.stack([minus(ay, bz, az, by), minus(az, bx, ax, bz), minus(ax, by, ay, bx)], axis=-1)
+
+
+@_cross_exact.defjvp
+def _cross_exact_jvp(primals, tangents):
+    _, dc = jax.jvp(_cross_plain, primals, tangents)
+    return _cross_exact(*primals), dc
+
+
 def _rsqrt_positive(x):
     ok = x > 0
     return jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, x, 1)), 1)
@@ -284,7 +312,8 @@ def refract(i: Float[ArrayLike, "*batch 3"], n: Float[ArrayLike, "*#batch 3"], e
     # sin^2 from the cross product: near normal incidence a cosine is within an ulp of 1 and has
     # lost the angle (c = 1 - theta^2/2), which matters when eta1 >> eta2 puts the critical angle
     # there (eta2/eta1 = 1e-3: theta_c = 1e-3 rad); |i x n|^2 keeps it to full relative accuracy.
-    cr = _cross(i, n)
+    # (error-free products: s2 and i_tan below must agree, see `_cross_exact`)
+    cr = _cross_exact(i, n)
     s2 = _dot(cr, cr)[..., None]
     q, diff, _ = _kt_squared(ki, eta1, eta2, sin_sq=s2)  # (eta2 cos_t)^2; < 0 under TIR
     # One materialized q: otherwise XLA recomputes q in several fused loops, contracting
