@@ -201,3 +201,56 @@ def test_refract_within_ulps_of_the_critical_angle(dtype):
         if not err <= bound + 4 * eps:
             failures.append(("t", args, float(err), float(bound)))
     assert not failures, (len(failures), failures[:3])
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_cross_product_within_an_ulp_for_nearly_parallel_vectors(dtype):
+    """`refract`'s cross product (error-free products) against 50-digit mpmath: every component
+    within an ulp of the exact one, also for nearly parallel vectors, where the plain form cancels
+    (its error is then of the order eps |i| |n| against components of size |i| |n| sin)."""
+    from mpmath import mp
+
+    from jaxoptics._interface._refract import _cross_exact
+
+    rng = np.random.default_rng(5)
+    N = 300
+    n = rng.normal(size=(N, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    i = n + rng.choice([1e-1, 1e-3, 1e-5], size=(N, 1)) * rng.normal(size=(N, 3))
+    i, n = i.astype(dtype), n.astype(dtype)
+    got = np.asarray(_cross_exact(jnp.asarray(i), jnp.asarray(n)), np.float64)
+    with mp.workdps(50):
+        for a, b, g in zip(i.tolist(), n.tolist(), got):
+            a, b = [mp.mpf(x) for x in a], [mp.mpf(x) for x in b]
+            ref = [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+            for gk, rk in zip(g, ref):
+                assert abs(mp.mpf(gk) - rk) <= spacing(float(rk), dtype), (a, b, g)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_refract_unit_length_near_the_critical_angle_at_a_large_contrast(dtype):
+    """Leaving a medium 700 times denser, within a few ulps of the critical angle (near normal
+    incidence, where i and n are nearly parallel and their cross product cancels): |t| = 1 to
+    16 ulps, the stress test's invariant. The sine enters twice, through k_t^2 and through i's
+    tangential part; both read the same cross product whatever the compiler's fusion and
+    contraction (the suite compiles at LLVM level 0, where two differently rounded copies gave
+    |t| - 1 = 1.2e-5 in float32 at the first case below)."""
+    i0 = np.array([-0.4718353, 0.77672076, -0.4172245], np.float32)
+    n0 = np.array([-0.47214293, 0.77600956, -0.41819876], np.float32)
+    cases = [(i0, n0, 0.86915165, 0.0012221208)]
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        e1, e2 = float(rng.uniform(0.5, 2.0)), 0.0
+        e2 = e1 / float(rng.uniform(500.0, 1000.0))
+        s = (e2 / e1) * (1 + float(rng.uniform(-3, 3)) * float(np.finfo(dtype).eps))  # sin of incidence
+        n, a = _frame(rng, dtype)
+        cases.append((np.sqrt(1 - s * s) * -n + s * a, n * rng.choice([-1.0, 1.0]), e1, e2))
+    i = jnp.asarray(np.stack([c[0] for c in cases]).astype(dtype))
+    n = jnp.asarray(np.stack([c[1] for c in cases]).astype(dtype))
+    e1 = jnp.asarray(np.array([c[2] for c in cases], dtype))
+    e2 = jnp.asarray(np.array([c[3] for c in cases], dtype))
+    t, tir = jax.jit(jo.refract)(i, n, e1, e2)
+    t = np.asarray(t, np.float64)
+    assert 20 < int(np.count_nonzero(~np.asarray(tir))) < len(cases)  # both sides of the critical angle
+    err = np.abs(np.linalg.norm(t, axis=1) - 1)
+    assert np.all(err <= 16 * float(np.finfo(dtype).eps)), (float(err.max()), int(err.argmax()))
