@@ -163,10 +163,6 @@ def _cross(a, b):
     return jnp.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
 
 
-def _cross_plain(a, b):
-    return _cross(a, b)
-
-
 @jax.custom_jvp
 def _cross_exact(a, b):
     """a x b with each component a_j b_k - a_k b_j from error-free products (`_two_prod`): within
@@ -187,7 +183,7 @@ def _cross_exact(a, b):
 
 @_cross_exact.defjvp
 def _cross_exact_jvp(primals, tangents):
-    _, dc = jax.jvp(_cross_plain, primals, tangents)
+    _, dc = jax.jvp(_cross, primals, tangents)
     return _cross_exact(*primals), dc
 
 
